@@ -1,0 +1,89 @@
+"""Choosing and starting a Mitsuba variant: ``auto``, ``llvm_ad_rgb`` (CPU) or ``cuda_ad_rgb`` (GPU).
+
+Dr.Jit's CPU backend needs libLLVM ≥ 16; with Debian's libLLVM 14/15 it aborts inside LLVM on the first kernel.
+:func:`set_variant` finds a suitable library first and otherwise stops with one line naming the fix.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import re
+
+from .errors import GuidingError
+
+VARIANTS = ("auto", "llvm_ad_rgb", "cuda_ad_rgb")
+MIN_LLVM = 16
+LLVM_FIX = "apt-get install libllvm19"
+
+_LLVM_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib",
+              "/usr/local/lib", "/opt/homebrew/opt/llvm/lib", "/usr/local/opt/llvm/lib")
+
+
+class BackendError(GuidingError):
+    """The requested variant cannot run on this machine; the message says how to fix it."""
+
+
+def _llvm_major(path: str) -> int:
+    match = re.search(r"LLVM[-.]?(?:so\.)?(\d+)", os.path.basename(path))
+    return int(match.group(1)) if match else 0
+
+
+def find_libllvm() -> str | None:
+    """Path of the newest libLLVM ≥ 16 in a standard place, or ``DRJIT_LIBLLVM_PATH`` if the user set one."""
+    explicit = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if explicit:
+        return explicit if os.path.exists(explicit) else None
+    candidates = []
+    for folder in _LLVM_DIRS:
+        candidates += glob.glob(os.path.join(folder, "libLLVM*.so*")) + glob.glob(os.path.join(folder, "libLLVM*.dylib"))
+    usable = [c for c in candidates if _llvm_major(c) >= MIN_LLVM]
+    return max(usable, key=_llvm_major) if usable else None
+
+
+def cuda_available() -> bool:
+    """True when an NVIDIA driver with OptiX is loadable (cheap check, no Dr.Jit initialisation)."""
+    import ctypes
+
+    for name in ("libcuda.so.1", "libcuda.so"):
+        try:
+            ctypes.CDLL(name)
+            return True
+        except OSError:
+            continue
+    return False
+
+
+def resolve_variant(variant: str = "auto") -> str:
+    """The concrete variant ``auto`` stands for on this machine (CUDA when usable, else LLVM)."""
+    if variant not in VARIANTS:
+        raise BackendError(f"unknown variant '{variant}' (choose from {', '.join(VARIANTS)})")
+    if variant == "auto":
+        return "cuda_ad_rgb" if cuda_available() else "llvm_ad_rgb"
+    return variant
+
+
+def set_variant(variant: str = "auto", threads: int | None = None) -> str:
+    """Select the Mitsuba variant (checking libLLVM first on the CPU) and the CPU thread count; returns the variant."""
+    variant = resolve_variant(variant)
+    if variant.startswith("llvm"):
+        lib = find_libllvm()
+        if lib is None:
+            raise BackendError(f"the CPU backend needs libLLVM >= {MIN_LLVM} and none was found: run `{LLVM_FIX}` "
+                               "(or set DRJIT_LIBLLVM_PATH)")
+        os.environ["DRJIT_LIBLLVM_PATH"] = lib
+    import drjit as dr
+    import mitsuba as mi
+
+    try:
+        mi.set_variant(variant)
+    except (ImportError, AttributeError, RuntimeError) as error:
+        raise BackendError(f"cannot start variant {variant}: {error}") from None
+    if threads is not None:
+        if threads < 1:
+            raise BackendError(f"thread count must be >= 1, got {threads}")
+        dr.set_thread_count(threads)
+    from . import integrator  # registers the `guided_path` integrator for this variant
+
+    integrator.register()
+    return variant

@@ -1,0 +1,308 @@
+"""Command line: ``python -m guiding {render, reference, evaluate, demo, scenes, methods}``.
+
+Bad input ends with one line on stderr and a non-zero exit, before any output is written; an interrupted run
+leaves no output files behind (they are written atomically, last of all).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import socket
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+from .errors import GuidingError
+
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line (not the usage text) and exit code 2."""
+
+    def error(self, message):
+        raise GuidingError(f"{self.prog}: {message}")
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def _add_backend_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--variant", default="auto", help="auto | llvm_ad_rgb | cuda_ad_rgb (default: auto)")
+    parser.add_argument("--threads", type=_positive_int, default=None, help="CPU worker threads (LLVM backend)")
+
+
+def _add_scene_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", required=True, help="scene name (see `scenes`) or path to a scene XML file")
+    parser.add_argument("--scale", type=_positive_float, default=1.0, help="resolution scale (default 1)")
+    parser.add_argument("--scene-dir", action="append", default=[], help="extra scene folder (repeatable)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--pass-spp", type=_positive_int, default=8, help="samples per pixel per pass (default 8)")
+    parser.add_argument("--max-depth", type=_positive_int, default=16)
+    parser.add_argument("--out", required=True, help="output folder (image.exr, preview.png, stats.json)")
+    parser.add_argument("--quiet", action="store_true", help="no progress display")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="guiding", description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    render = commands.add_parser("render", help="render a scene with a method")
+    _add_scene_options(render)
+    render.add_argument("--method", required=True, help="method name (see `methods`)")
+    budget = render.add_mutually_exclusive_group(required=True)
+    budget.add_argument("--spp", type=_positive_int, help="samples per pixel budget")
+    budget.add_argument("--seconds", type=_positive_float, help="time budget in seconds")
+    render.add_argument("--exclude-passes", type=int, default=0,
+                        help="leading passes not counted against a seconds budget (default 0)")
+    _add_backend_options(render)
+
+    reference = commands.add_parser("reference", help="render a reference with Mitsuba's `path` integrator")
+    _add_scene_options(reference)
+    reference.add_argument("--spp", type=_positive_int, required=True)
+    _add_backend_options(reference)
+    reference.set_defaults(pass_spp=64)
+
+    evaluate = commands.add_parser("evaluate", help="print the metrics of IMAGE against REF as JSON")
+    evaluate.add_argument("image")
+    evaluate.add_argument("ref")
+
+    bench = commands.add_parser("bench", help="time per spp of `brdf` vs Mitsuba's `path` (same process)")
+    bench.add_argument("--scenes", default="cornell:1,door-ajar:1",
+                       help="comma-separated NAME:SCALE list (default cornell:1,door-ajar:1)")
+    bench.add_argument("--passes", type=_positive_int, default=12, help="timed passes per integrator")
+    bench.add_argument("--out", default="results/bench", help="output folder (default results/bench)")
+    _add_backend_options(bench)
+
+    demo = commands.add_parser("demo", help="the main job: reference, then each method at equal spp, then MAE")
+    demo.add_argument("--scene", default="door-ajar")
+    demo.add_argument("--scale", type=_positive_float, default=0.5)
+    demo.add_argument("--methods", default="brdf", help="comma-separated method names")
+    demo.add_argument("--spp", type=_positive_int, default=256, help="spp of each method (default 256)")
+    demo.add_argument("--reference-spp", type=_positive_int, default=4096)
+    demo.add_argument("--out", default="results/demo")
+    _add_backend_options(demo)
+
+    commands.add_parser("scenes", help="list the scenes on the search path")
+    commands.add_parser("methods", help="list the method names")
+    return parser
+
+
+def _prepare_output_dir(path: str) -> Path:
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise GuidingError(f"output folder '{out}' exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise GuidingError(f"cannot create output folder '{out}': {error.strerror}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise GuidingError(f"output folder '{out}' is not writable")
+    return out
+
+
+def _provenance(variant: str, threads: int | None) -> dict:
+    import drjit as dr
+    import mitsuba as mi
+
+    return {"variant": variant, "threads": dr.thread_count() if variant.startswith("llvm") else None,
+            "device": _device_name(variant), "host": socket.gethostname(), "platform": platform.platform(),
+            "python": platform.python_version(), "mitsuba": mi.__version__, "drjit": dr.__version__,
+            "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+
+
+def _device_name(variant: str) -> str:
+    if variant.startswith("cuda"):
+        import subprocess
+
+        try:
+            names = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                                   text=True, timeout=10).stdout.strip().splitlines()
+        except (OSError, subprocess.SubprocessError):
+            names = []
+        return f"GPU: {names[0]}" if names else "GPU: CUDA device"
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            for line in cpuinfo:
+                if line.startswith("model name"):
+                    return f"CPU: {line.split(':', 1)[1].strip()} ({os.cpu_count()} threads)"
+    except OSError:
+        pass
+    return f"CPU: {platform.processor() or platform.machine()}"
+
+
+def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget, variant: str) -> dict:
+    from . import imageio
+    from .render import render
+    from .scenes import find_scene, load_scene
+
+    scene = load_scene(scene_name, args.scale, args.scene_dir)
+    result = render(scene, integrator, budget, seed=args.seed, progress=False if args.quiet else None)
+    film_size = [int(v) for v in scene.sensors()[0].film().size()]
+    stats = {"scene": scene_name, "scene_file": str(find_scene(scene_name, args.scene_dir)), "scale": args.scale,
+             "resolution": film_size, "method": method, "seed": args.seed, "max_depth": args.max_depth,
+             **result.summary(), "guide": getattr(getattr(integrator, "guide", None), "stats", dict)(),
+             "provenance": _provenance(variant, args.threads), "per_pass": [asdict(p) for p in result.passes]}
+    imageio.write_exr(out / "image.exr", result.image)
+    imageio.write_png(out / "preview.png", result.image)
+    with imageio.atomic_path(out / "stats.json") as tmp, open(tmp, "w") as file:
+        json.dump(stats, file, indent=1)
+    return stats
+
+
+def _command_render(args) -> None:
+    from .backend import set_variant
+    from .methods import make_guide
+    from .render import Budget
+    from .scenes import find_scene
+
+    budget = Budget(spp=args.spp, seconds=args.seconds, pass_spp=args.pass_spp, exclude_passes=args.exclude_passes)
+    find_scene(args.scene, args.scene_dir)
+    guide = make_guide(args.method)  # unknown methods fail here, before any Dr.Jit start-up
+    out = _prepare_output_dir(args.out)
+    variant = set_variant(args.variant, args.threads)
+    from .integrator import GuidedPathIntegrator
+    import mitsuba as mi
+
+    props = mi.Properties()
+    props["max_depth"] = args.max_depth
+    integrator = GuidedPathIntegrator(props, guide=guide)
+    stats = _render_to(out, args.scene, args, integrator, args.method, budget, variant)
+    print(f"{args.method} on {args.scene}: {stats['spp']} spp in {stats['seconds']:.2f} s "
+          f"(compile {stats['compile_seconds']:.2f} s), hit rate {stats['hit_rate']:.4f} -> {out}")
+
+
+def _command_reference(args) -> None:
+    from .backend import set_variant
+    from .render import Budget
+    from .scenes import find_scene
+
+    budget = Budget(spp=args.spp, pass_spp=min(args.pass_spp, args.spp))
+    find_scene(args.scene, args.scene_dir)
+    out = _prepare_output_dir(args.out)
+    variant = set_variant(args.variant, args.threads)
+    import mitsuba as mi
+
+    integrator = mi.load_dict({"type": "path", "max_depth": args.max_depth})
+    stats = _render_to(out, args.scene, args, integrator, "reference-path", budget, variant)
+    print(f"reference of {args.scene}: {stats['spp']} spp in {stats['seconds']:.1f} s -> {out}")
+
+
+def _command_evaluate(args) -> None:
+    from .imageio import read_exr
+    from .metrics import evaluate
+
+    print(json.dumps(evaluate(read_exr(args.image), read_exr(args.ref)), indent=1))
+
+
+def _parse_scene_list(text: str) -> list[tuple[str, float]]:
+    pairs = []
+    for item in filter(None, text.split(",")):
+        name, _, scale = item.partition(":")
+        try:
+            pairs.append((name, float(scale) if scale else 1.0))
+        except ValueError:
+            raise GuidingError(f"bad scene entry '{item}': expected NAME or NAME:SCALE") from None
+    return pairs
+
+
+def _command_bench(args) -> None:
+    from .backend import set_variant
+    from .scenes import find_scene
+
+    scenes = _parse_scene_list(args.scenes)
+    for name, _ in scenes:
+        find_scene(name)
+    out = _prepare_output_dir(args.out)
+    variant = set_variant(args.variant, args.threads)
+    from .bench import baseline_vs_mitsuba, write_table
+
+    frame = baseline_vs_mitsuba(scenes, passes=args.passes)
+    device = _device_name(variant)
+    tag = "gpu" if variant.startswith("cuda") else "cpu"
+    write_table(frame, out / f"baseline_{tag}", "Time per spp: `brdf` (ours, no NEE) vs Mitsuba `path` (NEE+MIS), "
+                "max depth 16", device)
+    print(frame.to_string(index=False))
+
+
+def _command_demo(args) -> None:
+    """Reference (cached) + each method at equal spp on one scene, and a Markdown table of the errors."""
+    from .backend import set_variant
+    from .methods import make_guide
+    from .scenes import find_scene
+
+    methods = [m for m in args.methods.split(",") if m]
+    for method in methods:
+        make_guide(method)
+    find_scene(args.scene)
+    out = _prepare_output_dir(args.out)
+    variant = set_variant(args.variant, args.threads)
+    import pandas as pd
+
+    from .imageio import read_exr
+    from .metrics import evaluate
+
+    common = ["--scene", args.scene, "--scale", str(args.scale), "--variant", variant]
+    reference = out / f"reference-{args.reference_spp}spp"
+    if not (reference / "stats.json").exists():
+        _command_reference(build_parser().parse_args(["reference", *common, "--spp", str(args.reference_spp),
+                                                      "--out", str(reference)]))
+    rows = []
+    for method in methods:
+        target = out / method
+        _command_render(build_parser().parse_args(["render", *common, "--method", method, "--spp", str(args.spp),
+                                                   "--out", str(target)]))
+        stats = json.loads((target / "stats.json").read_text())
+        errors = evaluate(read_exr(target / "image.exr"), read_exr(reference / "image.exr"))
+        rows.append({"method": method, "spp": stats["spp"], "seconds": stats["seconds"],
+                     "hit_rate": stats["hit_rate"], "mae": errors["mae"], "relmse": errors["relmse"]})
+    table = pd.DataFrame(rows).to_markdown(index=False, floatfmt=".4g")
+    (out / "summary.md").write_text(f"# {args.scene} at scale {args.scale}, {args.spp} spp\n\n{table}\n")
+    print(table)
+
+
+def _command_scenes(args) -> None:
+    from .scenes import available_scenes, search_path
+
+    for name in available_scenes():
+        print(name)
+    print("search path: " + os.pathsep.join(str(p) for p in search_path()), file=sys.stderr)
+
+
+def _command_methods(args) -> None:
+    from .methods import method_names
+
+    print("\n".join(method_names()))
+
+
+COMMANDS = {"render": _command_render, "reference": _command_reference, "evaluate": _command_evaluate,
+            "bench": _command_bench, "demo": _command_demo, "scenes": _command_scenes, "methods": _command_methods}
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+        COMMANDS[args.command](args)
+    except GuidingError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("interrupted: no output was written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return 0

@@ -1,0 +1,68 @@
+"""The Guide interface: one path loop (:mod:`guiding.integrator`), many ways to choose directions."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mitsuba as mi
+
+
+@dataclass
+class NoPathState:
+    """Per-path learning state of a guide that learns nothing (an empty Dr.Jit PyTree)."""
+
+    DRJIT_STRUCT = {}
+
+
+class Guide:
+    """Base class of all guides; the defaults describe plain BSDF sampling that learns nothing.
+
+    Host side, in this order:
+      ``prepare(scene)`` once before the first pass; ``update(spp_done)`` after each pass, once the pass's
+      kernel has run; ``stats()`` at any time.
+    Device side, traced into the path loop:
+      ``new_paths(size)`` builds the per-path state carried through the loop;
+      ``sample(...)`` draws the next direction;
+      ``record(...)`` hands the guide what the path saw at a vertex (learning rules live here);
+      ``finish_paths(state)`` runs once after the loop (e.g. the backward walk of Monte Carlo learning).
+    """
+
+    #: Short method name, as used on the command line and in tables.
+    name = "guide"
+    #: Whether ``record`` / ``finish_paths`` do anything; the path loop skips them otherwise.
+    learns = False
+
+    # ---------------------------------------------------------------- host side
+    def prepare(self, scene: mi.Scene) -> None:
+        """Allocate tables for ``scene`` before the first pass."""
+
+    def update(self, spp_done: int) -> dict:
+        """Rebuild the sampling distributions from what the last pass recorded; returns per-pass statistics."""
+        return {}
+
+    def stats(self) -> dict:
+        """Memory and configuration figures for ``stats.json``."""
+        return {}
+
+    # -------------------------------------------------------------- device side
+    def new_paths(self, size: int):
+        return NoPathState()
+
+    def sample(self, scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr,
+               bsdf_ctx: mi.BSDFContext, active: mi.Bool) -> tuple[mi.BSDFSample3f, mi.Spectrum]:
+        """Sample the direction leaving ``si``; returns the BSDF sample (``wo`` in the local frame, ``pdf`` the
+        density actually used) and the weight ``f·cos/pdf``, exactly like ``BSDF.sample``."""
+        return bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
+
+    def record(self, state, si: mi.SurfaceInteraction3f, emitted: mi.Spectrum, bs: mi.BSDFSample3f,
+               weight: mi.Spectrum, continues: mi.Bool, active: mi.Bool):
+        """Learn from vertex ``si`` of the active paths.
+
+        ``emitted`` is the radiance emitted at ``si`` towards the previous vertex; ``bs``/``weight`` the direction
+        sampled at ``si`` and its weight including the Russian-roulette factor; ``continues`` whether the path goes
+        on from ``si`` (false at escapes, absorption, maximum depth and Russian-roulette termination).
+        """
+        return state
+
+    def finish_paths(self, state) -> None:
+        """Called once after the path loop with the final per-path state."""

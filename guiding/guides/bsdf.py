@@ -1,0 +1,9 @@
+"""The unguided baseline: plain BSDF importance sampling (the paper's "BRDF" column)."""
+
+from .base import Guide
+
+
+class BSDFGuide(Guide):
+    """Samples every direction from the BSDF and learns nothing; every default of :class:`Guide` applies."""
+
+    name = "brdf"
