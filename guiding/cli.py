@@ -168,15 +168,16 @@ def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget
 
 def _command_render(args) -> None:
     from .backend import set_variant
-    from .methods import make_guide
+    from .methods import check_method, make_guide
     from .render import Budget
     from .scenes import find_scene
 
     budget = Budget(spp=args.spp, seconds=args.seconds, pass_spp=args.pass_spp, exclude_passes=args.exclude_passes)
     find_scene(args.scene, args.scene_dir)
-    guide = make_guide(args.method)  # unknown methods fail here, before any Dr.Jit start-up
+    check_method(args.method)
     out = _prepare_output_dir(args.out)
     variant = set_variant(args.variant, args.threads)
+    guide = make_guide(args.method)
     from .integrator import GuidedPathIntegrator
     import mitsuba as mi
 
@@ -244,12 +245,12 @@ def _command_bench(args) -> None:
 def _command_demo(args) -> None:
     """Reference (cached) + each method at equal spp on one scene, and a Markdown table of the errors."""
     from .backend import set_variant
-    from .methods import make_guide
+    from .methods import check_method
     from .scenes import find_scene
 
     methods = [m for m in args.methods.split(",") if m]
     for method in methods:
-        make_guide(method)
+        check_method(method)
     find_scene(args.scene)
     out = _prepare_output_dir(args.out)
     variant = set_variant(args.variant, args.threads)

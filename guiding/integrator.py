@@ -63,7 +63,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         depth = mi.UInt32(0)          # Number of surface vertices so far
         active = dr.full(mi.Bool, True, dr.width(ray.o)) & active
         started = mi.Bool(active)     # The lanes that trace a path (for the hit rate)
-        path_state = guide.new_paths(dr.width(ray.o))
+        path_state = guide.new_paths(dr.width(ray.o), self.max_depth)
 
         while dr.hint(active, max_iterations=self.max_depth, label="Guided path tracer"):
             si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0))

@@ -4,13 +4,25 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import re
+
 from .errors import GuidingError
-from .guides import BSDFGuide, Guide
+from .guides import RULES, SAMPLERS, BSDFGuide, Guide
 
 
 class UnknownMethod(GuidingError):
     pass
 
+
+#: The paper's configurations (S = 8, D = 16). Every ``{rule}-{sampler}`` pair is a method too, and any grid
+#: method takes resolution overrides as a suffix: ``ours-S4-D32``, ``mc-hemi_inv-S16``.
+GRID_METHODS = {
+    "ours": ("sarsa", "hemi_rej_plus"),
+    "ours-no-rejopt": ("sarsa", "hemi_rej"),
+    "ours-expected": ("expected_sarsa", "hemi_rej_plus"),
+    **{f"{rule}-{sampler}": (rule, sampler) for rule in RULES for sampler in SAMPLERS},
+}
+_OVERRIDES = re.compile(r"^(?P<base>.+?)(?:-S(?P<S>\d+))?(?:-D(?P<D>\d+))?$")
 
 _FACTORIES: dict[str, Callable[[], Guide]] = {
     "brdf": BSDFGuide,
@@ -18,13 +30,33 @@ _FACTORIES: dict[str, Callable[[], Guide]] = {
 
 
 def method_names() -> list[str]:
-    return sorted(_FACTORIES)
+    return sorted([*_FACTORIES, *GRID_METHODS])
+
+
+def grid_parameters(name: str) -> dict | None:
+    """The grid guide's parameters for a grid method name (None for other names); no variant needed."""
+    match = _OVERRIDES.match(name)
+    if not match or match["base"] not in GRID_METHODS:
+        return None
+    rule, sampler = GRID_METHODS[match["base"]]
+    S, D = int(match["S"] or 8), int(match["D"] or 16)
+    if not (1 <= S <= 256 and 1 <= D <= 256):
+        raise UnknownMethod(f"method '{name}': S and D must be in 1..256")
+    return {"spatial_resolution": S, "directional_resolution": D, "rule": rule, "sampler": sampler, "name": name}
+
+
+def check_method(name: str) -> None:
+    """Raise UnknownMethod unless ``name`` names a method (cheap: builds nothing, needs no variant)."""
+    if name not in _FACTORIES and grid_parameters(name) is None:
+        raise UnknownMethod(f"unknown method '{name}' (known: {', '.join(method_names())}; grid methods take "
+                            "-S<n>-D<n> suffixes)")
 
 
 def make_guide(name: str) -> Guide:
     """A fresh guide for method ``name``."""
-    try:
-        factory = _FACTORIES[name]
-    except KeyError:
-        raise UnknownMethod(f"unknown method '{name}' (known: {', '.join(method_names())})") from None
-    return factory()
+    check_method(name)
+    if name in _FACTORIES:
+        return _FACTORIES[name]()
+    from .guides.grid import GridGuide
+
+    return GridGuide(**grid_parameters(name))

@@ -5,7 +5,11 @@ device-side part called from inside the Dr.Jit path loop (``new_paths``, ``sampl
 ``finish_paths``). See :class:`guiding.guides.base.Guide`.
 """
 
-from .base import Guide, NoPathState
+#: Learning rules and samplers of the grid guide (:mod:`guiding.guides.grid`), importable before a variant is set.
+RULES = ("mc", "sarsa", "expected_sarsa")
+SAMPLERS = ("sphere_inv", "hemi_inv", "hemi_rej", "hemi_rej_plus")
+
+from .base import Guide, NoPathState  # noqa: E402
 from .bsdf import BSDFGuide
 
-__all__ = ["Guide", "NoPathState", "BSDFGuide"]
+__all__ = ["Guide", "NoPathState", "BSDFGuide", "RULES", "SAMPLERS"]

@@ -21,7 +21,7 @@ class Guide:
       ``prepare(scene)`` once before the first pass; ``update(spp_done)`` after each pass, once the pass's
       kernel has run; ``stats()`` at any time.
     Device side, traced into the path loop:
-      ``new_paths(size)`` builds the per-path state carried through the loop;
+      ``new_paths(size, max_depth)`` builds the per-path state carried through the loop;
       ``sample(...)`` draws the next direction;
       ``record(...)`` hands the guide what the path saw at a vertex (learning rules live here);
       ``finish_paths(state)`` runs once after the loop (e.g. the backward walk of Monte Carlo learning).
@@ -45,7 +45,8 @@ class Guide:
         return {}
 
     # -------------------------------------------------------------- device side
-    def new_paths(self, size: int):
+    def new_paths(self, size: int, max_depth: int):
+        """Per-path state for ``size`` paths of at most ``max_depth`` vertices (a Dr.Jit PyTree)."""
         return NoPathState()
 
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr,

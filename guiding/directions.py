@@ -1,0 +1,86 @@
+"""Discretisations of the sphere of directions.
+
+:class:`SphereBins` is the radiance record's directional axis (method.md §2): the sphere split at the world
+z = 0 plane, each hemisphere mapped to the unit square by the concentric (Shirley–Chiu) map with the equal-area
+lift ``cos θ = 1 − r²`` (Mitsuba's ``square_to_uniform_hemisphere``), each square cut into ``D × D`` cells. All
+``2·D²`` bins have the solid angle ``2π/D²``, and a uniform point of a bin's square is a uniform direction in it.
+
+:class:`NormalBins` groups surface normals for the memo tables (N, M and the Expected SARSA value per
+(cell, normal bin)). It is a cube map with an odd resolution, so the axis directions — the normals of walls,
+floors and boxes — are bin centres, where the memoised values are exact.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+
+class SphereBins:
+    """``2·D²`` equal-area direction bins; bin ``k = h·D² + row·D + column`` (h = 1 for the z < 0 hemisphere)."""
+
+    def __init__(self, resolution: int):
+        if resolution < 1:
+            raise ValueError(f"directional resolution must be >= 1, got {resolution}")
+        self.resolution = resolution
+        self.count = 2 * resolution * resolution
+        self.solid_angle = 2 * dr.pi / (resolution * resolution)
+
+    def index(self, d: mi.Vector3f) -> mi.UInt32:
+        """Bin of world direction ``d`` (need not be normalised; the zero vector lands in bin 0)."""
+        lower = d.z < 0
+        local = dr.normalize(mi.Vector3f(d.x, d.y, dr.abs(d.z)))
+        local = dr.select(dr.isfinite(local.x), local, mi.Vector3f(0, 0, 1))
+        uv = mi.warp.uniform_hemisphere_to_square(local)
+        n = self.resolution
+        cell = dr.clip(mi.Vector2i(dr.floor(uv * n)), 0, n - 1)
+        return dr.select(lower, n * n, 0) + mi.UInt32(cell.y * n + cell.x)
+
+    def direction(self, k: mi.UInt32, sample: mi.Point2f) -> mi.Vector3f:
+        """The direction at position ``sample`` ∈ [0,1)² inside bin ``k`` (uniform in solid angle)."""
+        n = self.resolution
+        lower = k >= n * n
+        local_index = k - dr.select(lower, n * n, 0)
+        uv = (mi.Point2f(mi.Float(local_index % n), mi.Float(local_index // n)) + sample) / n
+        d = mi.warp.square_to_uniform_hemisphere(uv)
+        return mi.Vector3f(d.x, d.y, dr.select(lower, -d.z, d.z))
+
+    def centres(self) -> mi.Vector3f:
+        return self.direction(dr.arange(mi.UInt32, self.count), mi.Point2f(0.5, 0.5))
+
+
+class NormalBins:
+    """``6·R²`` cube-map bins of unit normals (R odd, so ±x, ±y, ±z are bin centres)."""
+
+    def __init__(self, resolution: int):
+        if resolution < 1 or resolution % 2 == 0:
+            raise ValueError(f"normal-bin resolution must be odd and >= 1, got {resolution}")
+        self.resolution = resolution
+        self.count = 6 * resolution * resolution
+
+    def index(self, n: mi.Vector3f) -> mi.UInt32:
+        a = dr.abs(n)
+        axis = dr.select((a.x >= a.y) & (a.x >= a.z), 0, dr.select(a.y >= a.z, 1, 2))
+        major = dr.select(axis == 0, n.x, dr.select(axis == 1, n.y, n.z))
+        u = dr.select(axis == 0, n.y, n.x)
+        v = dr.select(axis == 2, n.y, n.z)
+        face = mi.UInt32(axis) * 2 + dr.select(major < 0, 1, 0)
+        scale = dr.rcp(dr.maximum(dr.abs(major), 1e-20))
+        r = self.resolution
+        i = dr.clip(mi.Int32(dr.floor((u * scale * 0.5 + 0.5) * r)), 0, r - 1)
+        j = dr.clip(mi.Int32(dr.floor((v * scale * 0.5 + 0.5) * r)), 0, r - 1)
+        return face * (r * r) + mi.UInt32(j * r + i)
+
+    def normal(self, k: mi.UInt32, sample: mi.Point2f | None = None) -> mi.Vector3f:
+        """The unit normal at position ``sample`` ∈ [0,1]² of bin ``k`` (its centre by default)."""
+        sample = mi.Point2f(0.5, 0.5) if sample is None else sample
+        r = self.resolution
+        face, local_index = k // (r * r), k % (r * r)
+        u = (mi.Float(local_index % r) + sample.x) / r * 2 - 1
+        v = (mi.Float(local_index // r) + sample.y) / r * 2 - 1
+        sign = dr.select((face & 1) == 1, -1.0, 1.0)
+        axis = face // 2
+        x = dr.select(axis == 0, sign, u)
+        y = dr.select(axis == 0, u, dr.select(axis == 1, sign, v))
+        z = dr.select(axis == 2, sign, v)
+        return dr.normalize(mi.Vector3f(x, y, z))

@@ -1,0 +1,291 @@
+"""Grid path guiding learned online (Kim & Kim 2021): learning rules and samplers over a :class:`RadianceRecord`.
+
+Rules (method.md §3), the target recorded for the segment x → x′ that left x in direction ω:
+  ``mc``              the radiance the path actually brought back (backward walk, Russian roulette included);
+  ``sarsa``           ``Le(x′) + (f·cos/p)(ω′)·Q(x′, ω′)`` with ω′ the direction sampled at x′;
+  ``expected_sarsa``  ``Le(x′) + ρ̄/π·∫_H Q(x′, ω) cos dω``, read from the memo table (O(1) per bounce).
+A segment whose guided direction went below the surface is never traced, so it records nothing.
+
+Samplers (method.md §5), used only at surfaces whose BSDF is purely diffuse; others are BSDF-sampled:
+  ``sphere_inv``     bin from the cell's CDF over the sphere, uniform in the bin; one-sample mixture with BSDF
+                     sampling (BSDF fraction 0.5);
+  ``hemi_inv``       bin from the memoised CDF of P·∫cos per (cell, normal bin), uniform in the bin;
+  ``hemi_rej``       uniform proposals on the hemisphere accepted with probability P·cos/M;
+  ``hemi_rej_plus``  the same with a uniform mixed in: ``g = (1 − ε_r)·P·cos + ε_r·ū``, ε_r = max((1−2c)/(2−2c), 0).
+The rejection loop stops after ``max_proposals``; the rest fall back to a fresh uniform direction, and the pdf
+accounts for it exactly: ``p = (1 − r)·g/N + r/(2π)`` with ``r = (1 − N/(2π·M′))^max_proposals``.
+Pass 0 samples the BSDF only (the tables are empty).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from . import RULES, SAMPLERS
+from .base import Guide
+from .grid_record import RadianceRecord
+#: Index of "no (cell, bin) to record into".
+NO_RECORD = 0xFFFFFFFF
+
+
+@dataclass
+class SarsaState:
+    """The (cell, bin) of the segment that led to the current vertex, or NO_RECORD."""
+
+    previous: mi.UInt32 = None
+    DRJIT_STRUCT = {"previous": mi.UInt32}
+
+
+@dataclass
+class MonteCarloState:
+    """Where this path's vertex records go in the guide's per-path buffer."""
+
+    lane: mi.UInt32 = None
+    vertices: mi.UInt32 = None
+    DRJIT_STRUCT = {"lane": mi.UInt32, "vertices": mi.UInt32}
+
+
+def _guidable(bsdf: mi.BSDFPtr) -> mi.Bool:
+    """Purely diffuse reflection: the BSDFs the paper guides (glossy, delta and transmissive lobes are not)."""
+    flags = bsdf.flags()
+    return (mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Glossy)
+            & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & ~mi.has_flag(flags, mi.BSDFFlags.DiffuseTransmission))
+
+
+class GridGuide(Guide):
+    """Kim & Kim's guide: a ``S³ × 2·D²`` radiance record, a learning rule and a sampler.
+
+    Parameters:
+      spatial_resolution: S (default 8).
+      directional_resolution: D (default 16, i.e. 512 bins).
+      rule: ``mc`` | ``sarsa`` | ``expected_sarsa``.
+      sampler: ``sphere_inv`` | ``hemi_inv`` | ``hemi_rej`` | ``hemi_rej_plus``.
+      normal_resolution: odd cube-map resolution of the memo tables' normal bins (default 5: 150 bins).
+      bsdf_fraction: BSDF share of the ``sphere_inv`` mixture (default 0.5).
+      max_proposals: cap of the rejection loop (default 64).
+      name: the method name shown in tables.
+    """
+
+    learns = True
+
+    def __init__(self, spatial_resolution: int = 8, directional_resolution: int = 16, rule: str = "sarsa",
+                 sampler: str = "hemi_rej_plus", normal_resolution: int = 5, bsdf_fraction: float = 0.5,
+                 max_proposals: int = 64, name: str | None = None):
+        if rule not in RULES:
+            raise ValueError(f"unknown learning rule '{rule}' (choose from {', '.join(RULES)})")
+        if sampler not in SAMPLERS:
+            raise ValueError(f"unknown sampler '{sampler}' (choose from {', '.join(SAMPLERS)})")
+        self.rule, self.sampler = rule, sampler
+        self.name = name or f"{rule}-{sampler}"
+        self.bsdf_fraction = bsdf_fraction
+        self.max_proposals = max_proposals
+        self.record_table = RadianceRecord(
+            spatial_resolution, directional_resolution, normal_resolution,
+            needs_cdf=sampler == "sphere_inv", needs_memo=sampler.startswith("hemi"),
+            needs_hemi_cdf=sampler == "hemi_inv", needs_value=rule == "expected_sarsa")
+        self.trained = False
+        self._mc_buffers = None
+        self._reset_counters()
+
+    # ================================================================ host side
+    def prepare(self, scene: mi.Scene) -> None:
+        self.record_table.set_bounds(scene.bbox())
+
+    def update(self, spp_done: int) -> dict:
+        stats = self._read_counters()
+        stats["memo_pairs"] = self.record_table.update(spp_done)
+        self.trained = True
+        self._reset_counters()
+        return stats
+
+    def stats(self) -> dict:
+        table = self.record_table
+        return {"rule": self.rule, "sampler": self.sampler, "S": table.S, "D": table.bins.resolution,
+                "bins": table.bins.count, "normal_bins": table.normal_bins.count,
+                "table_bytes": table.memory_bytes()}
+
+    def _reset_counters(self) -> None:
+        self.counters = {key: mi.UInt32(0) for key in ("guided", "invalid", "proposals", "rejection_samples",
+                                                        "accepted")}
+
+    def _read_counters(self) -> dict:
+        c = {key: int(value[0]) for key, value in self.counters.items()}
+        return {"guided_samples": c["guided"],
+                "invalid_share": c["invalid"] / c["guided"] if c["guided"] else 0.0,
+                "acceptance_rate": c["accepted"] / c["proposals"] if c["proposals"] else None,
+                "proposals_per_sample": c["proposals"] / c["rejection_samples"] if c["rejection_samples"] else None}
+
+    def _count(self, key: str, value, active: mi.Bool) -> None:
+        dr.scatter_reduce(dr.ReduceOp.Add, self.counters[key], mi.UInt32(value), mi.UInt32(0), active)
+
+    # ============================================================== device side
+    # ---------------------------------------------------------------- sampling
+    def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active):
+        bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
+        if not self.trained:
+            return bs, weight
+        table = self.record_table
+        guided = active & _guidable(bsdf)
+        cell = table.cell(si.p)
+        # The side of the surface the path arrived on: guided directions leave on that side.
+        side = dr.select(si.wi.z < 0, -1.0, 1.0)
+        if table.needs_pairs:
+            pair = table.pair(cell, si.sh_frame.n * side)
+            dr.scatter(table.visited, mi.UInt32(1), pair, guided)
+        if self.sampler.startswith("hemi"):
+            # A pair seen for the first time has no memo yet: its vertices keep BSDF sampling this pass.
+            norm = dr.gather(mi.Float, table.norm, pair, guided)
+            guided &= norm > 0
+            if self.sampler == "hemi_inv":
+                wo, pdf = self._sample_hemi_inv(sampler, si, pair, guided)
+            else:
+                wo, pdf = self._sample_rejection(sampler, si, cell, pair, norm, side, guided)
+            value = bsdf.eval(bsdf_ctx, si, wo, guided)
+        else:
+            wo, pdf, value = self._sample_sphere_mixture(sampler, si, bsdf, bsdf_ctx, bs, cell, guided)
+
+        guided_weight = dr.select(pdf > 0, value / pdf, 0)
+        self._count("guided", 1, guided)
+        self._count("invalid", 1, guided & dr.all(guided_weight == 0))
+        bs.wo = dr.select(guided, wo, bs.wo)
+        bs.pdf = dr.select(guided, pdf, bs.pdf)
+        bs.sampled_type = dr.select(guided, mi.UInt32(mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
+        bs.eta = dr.select(guided, 1.0, bs.eta)
+        return bs, dr.select(guided, guided_weight, weight)
+
+    def _guide_pdf(self, cell: mi.UInt32, wo_world: mi.Vector3f, active: mi.Bool) -> mi.Float:
+        """Solid-angle density of the sphere policy: ``P_k / (2π/D²)``."""
+        table = self.record_table
+        p = dr.gather(mi.Float, table.policy, cell * table.bins.count + table.bins.index(wo_world), active)
+        return p / table.bins.solid_angle
+
+    def _sample_sphere_mixture(self, sampler, si, bsdf, bsdf_ctx, bs, cell, guided):
+        table = self.record_table
+        B = table.bins.count
+        use_guide = guided & (sampler.next_1d(guided) >= self.bsdf_fraction)
+        u = sampler.next_1d(use_guide)
+        base = cell * B
+        k = dr.binary_search(0, B - 1, lambda i: dr.gather(mi.Float, table.cdf, base + i, use_guide) <= u)
+        wo_guide = si.to_local(table.bins.direction(k, sampler.next_2d(use_guide)))
+        wo = dr.select(use_guide, wo_guide, bs.wo)
+        value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
+        pdf = self.bsdf_fraction * bsdf_pdf + (1 - self.bsdf_fraction) * self._guide_pdf(cell, si.to_world(wo), guided)
+        return wo, pdf, value
+
+    def _sample_hemi_inv(self, sampler, si, pair, guided):
+        table = self.record_table
+        B = table.bins.count
+        row = pair * B
+        u = sampler.next_1d(guided)
+        k = dr.binary_search(0, B - 1, lambda i: dr.gather(mi.Float, table.hemi_cdf, row + i, guided) <= u)
+        above = dr.gather(mi.Float, table.hemi_cdf, row + k, guided)
+        below = dr.gather(mi.Float, table.hemi_cdf, row + k - 1, guided & (k > 0))
+        wo = si.to_local(table.bins.direction(k, sampler.next_2d(guided)))
+        return wo, (above - below) / table.bins.solid_angle
+
+    @dr.syntax
+    def _sample_rejection(self, sampler, si, cell, pair, norm, side, guided):
+        table = self.record_table
+        bound = dr.gather(mi.Float, table.bound, pair, guided)
+        mean = norm / (2 * dr.pi)                       # ū, the mean of P·cos over the hemisphere
+        mix = mi.Float(0)                               # ε_r
+        if dr.hint(self.sampler == "hemi_rej_plus", mode="scalar"):
+            c = mean / bound
+            mix = dr.maximum((1 - 2 * c) / (2 - 2 * c), 0)
+        bound_mixed = (1 - mix) * bound + mix * mean    # M′
+        target = lambda wo_local: self._mixed_target(si, cell, wo_local, mix, mean, guided)
+
+        wo = mi.Vector3f(0, 0, 1)
+        proposals = mi.UInt32(0)
+        accepted = mi.Bool(False)
+        searching = mi.Bool(guided)
+        while dr.hint(searching, label="Rejection sampling", max_iterations=-1):
+            candidate = mi.warp.square_to_uniform_hemisphere(sampler.next_2d(searching))
+            candidate.z *= side
+            proposals += 1
+            if sampler.next_1d(searching) * bound_mixed < target(candidate):
+                accepted = mi.Bool(True)
+                wo = candidate
+            searching &= ~accepted & (proposals < self.max_proposals)
+
+        # Paths that exhausted the cap take a fresh uniform direction (not the last, rejected, proposal).
+        fallback = guided & ~accepted
+        uniform = mi.warp.square_to_uniform_hemisphere(sampler.next_2d(fallback))
+        uniform.z *= side
+        wo = dr.select(fallback, uniform, wo)
+        acceptance = dr.minimum(norm / (2 * dr.pi * bound_mixed), 1)
+        miss_all = dr.power(1 - acceptance, self.max_proposals)
+        pdf = (1 - miss_all) * target(wo) / norm + miss_all / (2 * dr.pi)
+        self._count("proposals", proposals, guided)
+        self._count("rejection_samples", 1, guided)
+        self._count("accepted", 1, guided & accepted)
+        return wo, pdf
+
+    def _mixed_target(self, si, cell, wo_local, mix, mean, active) -> mi.Float:
+        """``g = (1 − ε_r)·P(ω)·cos + ε_r·ū`` for a local direction."""
+        table = self.record_table
+        p = dr.gather(mi.Float, table.policy, cell * table.bins.count + table.bins.index(si.to_world(wo_local)),
+                      active)
+        return (1 - mix) * p * dr.abs(wo_local.z) + mix * mean
+
+    # ---------------------------------------------------------------- learning
+    def new_paths(self, size: int, max_depth: int):
+        if self.rule == "mc":
+            slots = size * max_depth
+            self._mc_buffers = (dr.full(mi.UInt32, NO_RECORD, slots), dr.zeros(mi.Color3f, slots),
+                                dr.zeros(mi.Color3f, slots), max_depth)
+            return MonteCarloState(dr.arange(mi.UInt32, size), dr.zeros(mi.UInt32, size))
+        return SarsaState(dr.full(mi.UInt32, NO_RECORD, size))
+
+    def record(self, state, si, emitted, bs, weight, continues, active):
+        table = self.record_table
+        here = dr.select(continues, table.index(si.p, si.to_world(bs.wo)), NO_RECORD)
+        if self.rule == "mc":
+            indices, emitted_buffer, weight_buffer, max_depth = self._mc_buffers
+            slot = state.lane * max_depth + state.vertices
+            dr.scatter(indices, here, slot, active)
+            dr.scatter(emitted_buffer, mi.Color3f(emitted), slot, active)
+            dr.scatter(weight_buffer, mi.Color3f(weight), slot, active)
+            state.vertices += dr.select(active, 1, 0)
+            return state
+
+        target = dr.mean(emitted)
+        onward = dr.mean(weight) * dr.gather(mi.Float, table.q, here, continues)  # one-sample ∫ f·Q·cos
+        if self.rule == "expected_sarsa":
+            bsdf = si.bsdf()
+            pair = table.pair(table.cell(si.p), si.sh_frame.n * dr.select(si.wi.z < 0, -1.0, 1.0))
+            known = active & si.is_valid() & _guidable(bsdf) & (dr.gather(mi.Float, table.norm, pair, active) > 0)
+            albedo = dr.mean(bsdf.eval_diffuse_reflectance(si, known))
+            expected = albedo / dr.pi * dr.gather(mi.Float, table.value, pair, known)
+            onward = dr.select(known, expected, onward)
+        else:
+            known = mi.Bool(False)
+        target += dr.select(continues | known, onward, 0)
+        self._accumulate(state.previous, target, active & (state.previous != NO_RECORD))
+        state.previous = dr.select(active, here, state.previous)
+        return state
+
+    def finish_paths(self, state) -> None:
+        if self.rule == "mc":
+            self._backward_walk(state)
+
+    @dr.syntax
+    def _backward_walk(self, state: MonteCarloState) -> None:
+        """Monte Carlo targets: walk each path backwards, ``L ← Le_j + w_j·L``, recording L at every vertex."""
+        indices, emitted_buffer, weight_buffer, max_depth = self._mc_buffers
+        radiance = mi.Color3f(0)        # Radiance arriving at vertex j along its outgoing direction
+        j = mi.UInt32(state.vertices)
+        while j > 0:
+            j -= 1
+            slot = state.lane * max_depth + j
+            index = dr.gather(mi.UInt32, indices, slot)
+            self._accumulate(index, dr.mean(radiance), index != NO_RECORD)
+            radiance = dr.gather(mi.Color3f, emitted_buffer, slot) + dr.gather(mi.Color3f, weight_buffer, slot) * radiance
+
+    def _accumulate(self, index: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:
+        table = self.record_table
+        dr.scatter_reduce(dr.ReduceOp.Add, table.acc_sum, mi.Float64(target), index, active)
+        dr.scatter_reduce(dr.ReduceOp.Add, table.acc_count, mi.Float64(1), index, active)

@@ -1,0 +1,191 @@
+"""The radiance record of Kim & Kim (2021): Q, the policy and the memo tables on a uniform grid (method.md §2, §4).
+
+Layout: ``S³`` cells × ``B = 2·D²`` direction bins, flat, index ``cell·B + bin``. Memo tables are per
+(cell, normal bin), index ``cell·NB + normal_bin``. Everything lives on the device and is rebuilt between passes
+with Dr.Jit reductions and prefix sums (no host round trip but one ``dr.compress`` of the visited pairs).
+
+Life cycle: :meth:`RadianceRecord.update` turns the accumulated targets (never cleared: ``Q = Σ target / visits``,
+the learning rate 1/N) into Q, the policy ``P = (1 − ε)·(Q + 1e-6)/Σ(Q + 1e-6) + ε/B``, the per-cell CDF (for
+``sphere_inv``), and the memo tables of the (cell, normal bin) pairs the last passes visited:
+
+- ``norm``  N = ∫_H P·cos dω, the normalising term of the hemisphere samplers,
+- ``bound`` M ≥ max_H P·cos over every normal of the normal bin (a true bound, so rejection is exact),
+- ``value`` V = ∫_H Q·cos dω, Expected SARSA's expectation,
+- ``hemi_cdf`` the CDF over bins of P·∫_bin cos (``hemi_inv``).
+
+N and V use the cosine integrals at the normal bin's centre (exact there; the error elsewhere is measured in
+``results/``), from a quadrature of 8×8 points per bin.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from ..directions import NormalBins, SphereBins
+
+#: Added to Q before normalising, so that no bin has zero probability (method.md §4).
+Q_OFFSET = 1e-6
+#: Quadrature points per bin side for the cosine integrals.
+QUADRATURE = 8
+#: A bin reachable from the normal bin but with zero cosine integral at its centre keeps this share of its area,
+#: so hemi_inv can still sample it for off-centre normals (no direction with f·cos > 0 has zero density).
+REACHABLE_FLOOR = 0.01
+
+
+def exploration(spp_done: int) -> float:
+    """ε = 0.1^(N/100) for N samples per pixel completed before the pass (method.md §4)."""
+    return 0.1 ** (spp_done / 100.0)
+
+
+def _angular_radius(directions_of, count: int, centres: mi.Vector3f) -> mi.Float:
+    """Largest angle between a bin's centre and its boundary (sampled densely, with a safety margin)."""
+    steps = 17
+    radius = dr.zeros(mi.Float, count)
+    index = dr.arange(mi.UInt32, count)
+    for i in range(steps):
+        t = i / (steps - 1)
+        for sample in ((t, 0.0), (t, 1.0), (0.0, t), (1.0, t)):
+            d = directions_of(index, mi.Point2f(*sample))
+            radius = dr.maximum(radius, dr.safe_acos(dr.dot(d, centres)))
+    return radius * 1.05 + 1e-3
+
+
+class RadianceRecord:
+    """Q, accumulators, policy and memo tables of a ``S³ × 2·D²`` grid.
+
+    Parameters:
+      spatial_resolution: S, cells per axis of the scene's bounding box.
+      directional_resolution: D (``2·D²`` bins).
+      normal_resolution: R, odd, of the ``6·R²`` cube-map normal bins of the memo tables.
+      needs_cdf: build the per-cell CDF over the sphere (``sphere_inv``).
+      needs_memo: build N and M for visited (cell, normal bin) pairs (hemisphere samplers).
+      needs_hemi_cdf: build the per-pair CDFs (``hemi_inv``).
+      needs_value: build V (Expected SARSA).
+    """
+
+    def __init__(self, spatial_resolution: int, directional_resolution: int, normal_resolution: int = 5,
+                 needs_cdf: bool = False, needs_memo: bool = False, needs_hemi_cdf: bool = False,
+                 needs_value: bool = False):
+        if spatial_resolution < 1:
+            raise ValueError(f"spatial resolution must be >= 1, got {spatial_resolution}")
+        self.S = spatial_resolution
+        self.bins = SphereBins(directional_resolution)
+        self.normal_bins = NormalBins(normal_resolution)
+        self.cells = spatial_resolution ** 3
+        self.needs_cdf, self.needs_hemi_cdf, self.needs_value = needs_cdf, needs_hemi_cdf, needs_value
+        self.needs_pairs = needs_memo or needs_hemi_cdf or needs_value
+        B, NB, C = self.bins.count, self.normal_bins.count, self.cells
+
+        self.bbox_min = mi.Point3f(0)
+        self.inv_extent = mi.Vector3f(1)
+        self.acc_sum = dr.zeros(mi.Float64, C * B)
+        self.acc_count = dr.zeros(mi.Float64, C * B)
+        self.q = dr.zeros(mi.Float, C * B)
+        self.policy = dr.full(mi.Float, 1.0 / B, C * B)
+        self.cdf = None
+        if needs_cdf:
+            self.cdf = dr.tile(dr.arange(mi.Float, 1, B + 1) / B, C)
+        if self.needs_pairs:
+            self.visited = dr.zeros(mi.UInt32, C * NB)
+            self.norm = dr.zeros(mi.Float, C * NB)
+            self.bound = dr.zeros(mi.Float, C * NB)
+            self.value = dr.zeros(mi.Float, C * NB)
+            self.hemi_cdf = dr.zeros(mi.Float, C * NB * B) if needs_hemi_cdf else None
+            self.cos_integral, self.max_cos = self._cosine_tables()
+        dr.eval(self.policy, self.cdf)
+
+    # ------------------------------------------------------------------ geometry
+    def set_bounds(self, bbox: mi.BoundingBox3f) -> None:
+        extent = dr.maximum(bbox.max - bbox.min, 1e-6 * dr.maximum(dr.max(bbox.max - bbox.min), 1e-3))
+        self.bbox_min = mi.Point3f(bbox.min)
+        self.inv_extent = mi.Vector3f(dr.rcp(extent))
+
+    def cell(self, p: mi.Point3f) -> mi.UInt32:
+        """``clamp(floor(S·(p − bbox.min)/extent), 0, S − 1)``, flattened."""
+        c = dr.clip(mi.Vector3i(dr.floor((p - self.bbox_min) * self.inv_extent * self.S)), 0, self.S - 1)
+        return mi.UInt32((c.z * self.S + c.y) * self.S + c.x)
+
+    def index(self, p: mi.Point3f, d: mi.Vector3f) -> mi.UInt32:
+        """Flat (cell, bin) index of position ``p`` and world direction ``d``."""
+        return self.cell(p) * self.bins.count + self.bins.index(d)
+
+    def pair(self, cell: mi.UInt32, n: mi.Vector3f) -> mi.UInt32:
+        """Flat (cell, normal bin) index of a cell and a unit normal."""
+        return cell * self.normal_bins.count + self.normal_bins.index(n)
+
+    # ------------------------------------------------------------ precomputation
+    def _cosine_tables(self) -> tuple[mi.Float, mi.Float]:
+        """Per (normal bin, bin), flat ``nb·B + k``: ∫_bin max(0, n_c·ω) dω at the normal bin's centre, and a
+        bound on ``n·ω`` over all ω in the bin and all n in the normal bin."""
+        B, NB, m = self.bins.count, self.normal_bins.count, QUADRATURE
+        flat = dr.arange(mi.UInt32, NB * B)
+        nb, k = flat // B, flat % B
+        normal = self.normal_bins.normal(nb)
+        integral = dr.zeros(mi.Float, NB * B)
+        for i in range(m):
+            for j in range(m):
+                d = self.bins.direction(k, mi.Point2f((i + 0.5) / m, (j + 0.5) / m))
+                integral += dr.maximum(dr.dot(normal, d), 0)
+        integral *= self.bins.solid_angle / (m * m)
+
+        bin_centres = self.bins.centres()
+        normal_centres = self.normal_bins.normal(dr.arange(mi.UInt32, NB))
+        bin_radius = _angular_radius(self.bins.direction, B, bin_centres)
+        normal_radius = _angular_radius(self.normal_bins.normal, NB, normal_centres)
+        angle = dr.safe_acos(dr.dot(normal, dr.gather(mi.Vector3f, bin_centres, k)))
+        slack = dr.gather(mi.Float, bin_radius, k) + dr.gather(mi.Float, normal_radius, nb)
+        max_cos = dr.maximum(dr.cos(dr.maximum(angle - slack, 0)), 0)
+        dr.eval(integral, max_cos)
+        return integral, max_cos
+
+    # -------------------------------------------------------------------- update
+    def update(self, spp_done: int) -> int:
+        """Rebuild Q, the policy and what the samplers need; returns the number of memoised pairs."""
+        B = self.bins.count
+        visits = self.acc_count
+        self.q = mi.Float(dr.select(visits > 0, self.acc_sum / dr.maximum(visits, 1), 0))
+        epsilon = dr.opaque(mi.Float, exploration(spp_done))
+        shifted = self.q + Q_OFFSET
+        cell_of = dr.arange(mi.UInt32, self.cells * B) // B
+        totals = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, shifted, B), cell_of)
+        self.policy = (1 - epsilon) * shifted / totals + epsilon / B
+        if self.needs_cdf:
+            self.cdf = dr.block_prefix_sum(self.policy, B, exclusive=False)
+        dr.eval(self.q, self.policy, self.cdf)
+        return self._update_memo() if self.needs_pairs else 0
+
+    def _update_memo(self) -> int:
+        B, NB = self.bins.count, self.normal_bins.count
+        pairs = dr.compress(self.visited != 0)
+        count = dr.width(pairs)
+        if count == 0:
+            return 0
+        flat = dr.arange(mi.UInt32, count * B)
+        pair = dr.gather(mi.UInt32, pairs, flat // B)
+        k = flat % B
+        cell, nb = pair // NB, pair % NB
+        p = dr.gather(mi.Float, self.policy, cell * B + k)
+        cos_integral = dr.gather(mi.Float, self.cos_integral, nb * B + k)
+        max_cos = dr.gather(mi.Float, self.max_cos, nb * B + k)
+
+        dr.scatter(self.norm, dr.block_reduce(dr.ReduceOp.Add, p * cos_integral, B), pairs)
+        dr.scatter(self.bound, dr.block_reduce(dr.ReduceOp.Max, p * max_cos, B), pairs)
+        if self.needs_value:
+            q = dr.gather(mi.Float, self.q, cell * B + k)
+            dr.scatter(self.value, dr.block_reduce(dr.ReduceOp.Add, q * cos_integral, B), pairs)
+        if self.needs_hemi_cdf:
+            reachable = dr.select(max_cos > 0, REACHABLE_FLOOR * self.bins.solid_angle, 0)
+            weight = p * dr.maximum(cos_integral, reachable)
+            running = dr.block_prefix_sum(weight, B, exclusive=False)
+            total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, B), flat // B)
+            dr.scatter(self.hemi_cdf, running / total, pair * B + k)
+        dr.eval(self.norm, self.bound, self.value, self.hemi_cdf)
+        return count
+
+    def memory_bytes(self) -> int:
+        arrays = [self.acc_sum, self.acc_count, self.q, self.policy, self.cdf]
+        if self.needs_pairs:
+            arrays += [self.visited, self.norm, self.bound, self.value, self.hemi_cdf, self.cos_integral,
+                       self.max_cos]
+        return sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays if a is not None)
