@@ -48,6 +48,20 @@ class MonteCarloState:
     DRJIT_STRUCT = {"lane": mi.UInt32, "vertices": mi.UInt32}
 
 
+@dataclass
+class _Vertex:
+    """Per-lane facts about a vertex that the samplers share (filled by ``GridGuide._vertex``)."""
+
+    guided: mi.Bool
+    cell: mi.UInt32
+    side: mi.Float
+    pair: mi.UInt32 = None
+    norm: mi.Float = None     # N
+    mean: mi.Float = None     # ū = N/2π
+    bound: mi.Float = None    # M′ (M for hemi_rej)
+    mix: float | mi.Float = 0.0   # ε_r
+
+
 def _guidable(bsdf: mi.BSDFPtr) -> mi.Bool:
     """Purely diffuse reflection: the BSDFs the paper guides (glossy, delta and transmissive lobes are not)."""
     flags = bsdf.flags()
@@ -127,25 +141,15 @@ class GridGuide(Guide):
         bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
         if not self.trained:
             return bs, weight
-        table = self.record_table
-        guided = active & _guidable(bsdf)
-        cell = table.cell(si.p)
-        # The side of the surface the path arrived on: guided directions leave on that side.
-        side = dr.select(si.wi.z < 0, -1.0, 1.0)
-        if table.needs_pairs:
-            pair = table.pair(cell, si.sh_frame.n * side)
-            dr.scatter(table.visited, mi.UInt32(1), pair, guided)
-        if self.sampler.startswith("hemi"):
-            # A pair seen for the first time has no memo yet: its vertices keep BSDF sampling this pass.
-            norm = dr.gather(mi.Float, table.norm, pair, guided)
-            guided &= norm > 0
-            if self.sampler == "hemi_inv":
-                wo, pdf = self._sample_hemi_inv(sampler, si, pair, guided)
-            else:
-                wo, pdf = self._sample_rejection(sampler, si, cell, pair, norm, side, guided)
-            value = bsdf.eval(bsdf_ctx, si, wo, guided)
+        vertex = self._vertex(si, bsdf, active)
+        guided = vertex.guided
+        if self.sampler == "sphere_inv":
+            wo = self._sample_sphere(sampler, si, vertex, bs.wo)
+        elif self.sampler == "hemi_inv":
+            wo = self._sample_hemi_inv(sampler, si, vertex)
         else:
-            wo, pdf, value = self._sample_sphere_mixture(sampler, si, bsdf, bsdf_ctx, bs, cell, guided)
+            wo = self._sample_rejection(sampler, si, vertex)
+        value, pdf = self._eval_pdf(si, bsdf, bsdf_ctx, vertex, wo)
 
         guided_weight = dr.select(pdf > 0, value / pdf, 0)
         self._count("guided", 1, guided)
@@ -156,80 +160,108 @@ class GridGuide(Guide):
         bs.eta = dr.select(guided, 1.0, bs.eta)
         return bs, dr.select(guided, guided_weight, weight)
 
-    def _guide_pdf(self, cell: mi.UInt32, wo_world: mi.Vector3f, active: mi.Bool) -> mi.Float:
-        """Solid-angle density of the sphere policy: ``P_k / (2π/D²)``."""
-        table = self.record_table
-        p = dr.gather(mi.Float, table.policy, cell * table.bins.count + table.bins.index(wo_world), active)
-        return p / table.bins.solid_angle
+    def pdf(self, si, bsdf, bsdf_ctx, wo, active) -> mi.Float:
+        """Density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si``."""
+        if not self.trained:
+            return bsdf.pdf(bsdf_ctx, si, wo, active)
+        vertex = self._vertex(si, bsdf, active, mark_visited=False)
+        _, pdf = self._eval_pdf(si, bsdf, bsdf_ctx, vertex, wo)
+        return dr.select(vertex.guided, pdf, bsdf.pdf(bsdf_ctx, si, wo, active))
 
-    def _sample_sphere_mixture(self, sampler, si, bsdf, bsdf_ctx, bs, cell, guided):
+    def _vertex(self, si, bsdf, active, mark_visited=True) -> "_Vertex":
+        """What every sampler needs to know about a vertex; decides which lanes are guided."""
+        table = self.record_table
+        vertex = _Vertex(guided=active & _guidable(bsdf), cell=table.cell(si.p),
+                         side=dr.select(si.wi.z < 0, -1.0, 1.0))  # guided directions leave on the arrival side
+        if table.needs_pairs:
+            vertex.pair = table.pair(vertex.cell, si.sh_frame.n * vertex.side)
+            if mark_visited:
+                dr.scatter(table.visited, mi.UInt32(1), vertex.pair, vertex.guided)
+        if self.sampler.startswith("hemi"):
+            vertex.norm = dr.gather(mi.Float, table.norm, vertex.pair, vertex.guided)
+            # A pair seen for the first time has no memo yet: its vertices keep BSDF sampling this pass.
+            vertex.guided &= vertex.norm > 0
+        if self.sampler.startswith("hemi_rej"):
+            bound = dr.gather(mi.Float, table.bound, vertex.pair, vertex.guided)
+            vertex.mean = vertex.norm / (2 * dr.pi)           # ū, the mean of P·cos over the hemisphere
+            if self.sampler == "hemi_rej_plus":
+                c = vertex.mean / bound
+                vertex.mix = dr.maximum((1 - 2 * c) / (2 - 2 * c), 0)
+            vertex.bound = (1 - vertex.mix) * bound + vertex.mix * vertex.mean   # M′
+        return vertex
+
+    def _eval_pdf(self, si, bsdf, bsdf_ctx, vertex, wo) -> tuple[mi.Spectrum, mi.Float]:
+        """BSDF value ``f·cos`` and the guided sampler's density at local direction ``wo``."""
+        table = self.record_table
+        guided = vertex.guided
+        if self.sampler == "sphere_inv":
+            value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
+            policy = dr.gather(mi.Float, table.policy, vertex.cell * table.bins.count
+                               + table.bins.index(si.to_world(wo)), guided)
+            guide_pdf = policy / table.bins.solid_angle
+            return value, self.bsdf_fraction * bsdf_pdf + (1 - self.bsdf_fraction) * guide_pdf
+        value = bsdf.eval(bsdf_ctx, si, wo, guided)
+        if self.sampler == "hemi_inv":
+            row = vertex.pair * table.bins.count
+            k = table.bins.index(si.to_world(wo))
+            above = dr.gather(mi.Float, table.hemi_cdf, row + k, guided)
+            below = dr.gather(mi.Float, table.hemi_cdf, row + k - 1, guided & (k > 0))
+            return value, (above - below) / table.bins.solid_angle
+        on_side = wo.z * vertex.side > 0
+        acceptance = dr.minimum(vertex.norm / (2 * dr.pi * vertex.bound), 1)
+        miss_all = dr.power(1 - acceptance, self.max_proposals)
+        pdf = (1 - miss_all) * self._target(si, vertex, wo) / vertex.norm + miss_all / (2 * dr.pi)
+        return value, dr.select(on_side, pdf, 0)
+
+    def _target(self, si, vertex, wo) -> mi.Float:
+        """The rejection samplers' unnormalised density ``g = (1 − ε_r)·P(ω)·|cos| + ε_r·ū``."""
+        table = self.record_table
+        policy = dr.gather(mi.Float, table.policy, vertex.cell * table.bins.count + table.bins.index(si.to_world(wo)),
+                           vertex.guided)
+        return (1 - vertex.mix) * policy * dr.abs(wo.z) + vertex.mix * vertex.mean
+
+    def _sample_sphere(self, sampler, si, vertex, bsdf_wo) -> mi.Vector3f:
+        """One-sample mixture: the BSDF's direction with probability ``bsdf_fraction``, else the policy's."""
         table = self.record_table
         B = table.bins.count
-        use_guide = guided & (sampler.next_1d(guided) >= self.bsdf_fraction)
+        use_guide = vertex.guided & (sampler.next_1d(vertex.guided) >= self.bsdf_fraction)
         u = sampler.next_1d(use_guide)
-        base = cell * B
+        base = vertex.cell * B
         k = dr.binary_search(0, B - 1, lambda i: dr.gather(mi.Float, table.cdf, base + i, use_guide) <= u)
         wo_guide = si.to_local(table.bins.direction(k, sampler.next_2d(use_guide)))
-        wo = dr.select(use_guide, wo_guide, bs.wo)
-        value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
-        pdf = self.bsdf_fraction * bsdf_pdf + (1 - self.bsdf_fraction) * self._guide_pdf(cell, si.to_world(wo), guided)
-        return wo, pdf, value
+        return dr.select(use_guide, wo_guide, bsdf_wo)
 
-    def _sample_hemi_inv(self, sampler, si, pair, guided):
+    def _sample_hemi_inv(self, sampler, si, vertex) -> mi.Vector3f:
         table = self.record_table
-        B = table.bins.count
-        row = pair * B
-        u = sampler.next_1d(guided)
-        k = dr.binary_search(0, B - 1, lambda i: dr.gather(mi.Float, table.hemi_cdf, row + i, guided) <= u)
-        above = dr.gather(mi.Float, table.hemi_cdf, row + k, guided)
-        below = dr.gather(mi.Float, table.hemi_cdf, row + k - 1, guided & (k > 0))
-        wo = si.to_local(table.bins.direction(k, sampler.next_2d(guided)))
-        return wo, (above - below) / table.bins.solid_angle
+        row = vertex.pair * table.bins.count
+        u = sampler.next_1d(vertex.guided)
+        k = dr.binary_search(0, table.bins.count - 1,
+                             lambda i: dr.gather(mi.Float, table.hemi_cdf, row + i, vertex.guided) <= u)
+        return si.to_local(table.bins.direction(k, sampler.next_2d(vertex.guided)))
 
     @dr.syntax
-    def _sample_rejection(self, sampler, si, cell, pair, norm, side, guided):
-        table = self.record_table
-        bound = dr.gather(mi.Float, table.bound, pair, guided)
-        mean = norm / (2 * dr.pi)                       # ū, the mean of P·cos over the hemisphere
-        mix = mi.Float(0)                               # ε_r
-        if dr.hint(self.sampler == "hemi_rej_plus", mode="scalar"):
-            c = mean / bound
-            mix = dr.maximum((1 - 2 * c) / (2 - 2 * c), 0)
-        bound_mixed = (1 - mix) * bound + mix * mean    # M′
-        target = lambda wo_local: self._mixed_target(si, cell, wo_local, mix, mean, guided)
-
+    def _sample_rejection(self, sampler, si, vertex) -> mi.Vector3f:
         wo = mi.Vector3f(0, 0, 1)
         proposals = mi.UInt32(0)
         accepted = mi.Bool(False)
-        searching = mi.Bool(guided)
+        searching = mi.Bool(vertex.guided)
         while dr.hint(searching, label="Rejection sampling", max_iterations=-1):
             candidate = mi.warp.square_to_uniform_hemisphere(sampler.next_2d(searching))
-            candidate.z *= side
+            candidate.z *= vertex.side
             proposals += 1
-            if sampler.next_1d(searching) * bound_mixed < target(candidate):
+            if sampler.next_1d(searching) * vertex.bound < self._target(si, vertex, candidate):
                 accepted = mi.Bool(True)
                 wo = candidate
             searching &= ~accepted & (proposals < self.max_proposals)
 
         # Paths that exhausted the cap take a fresh uniform direction (not the last, rejected, proposal).
-        fallback = guided & ~accepted
+        fallback = vertex.guided & ~accepted
         uniform = mi.warp.square_to_uniform_hemisphere(sampler.next_2d(fallback))
-        uniform.z *= side
-        wo = dr.select(fallback, uniform, wo)
-        acceptance = dr.minimum(norm / (2 * dr.pi * bound_mixed), 1)
-        miss_all = dr.power(1 - acceptance, self.max_proposals)
-        pdf = (1 - miss_all) * target(wo) / norm + miss_all / (2 * dr.pi)
-        self._count("proposals", proposals, guided)
-        self._count("rejection_samples", 1, guided)
-        self._count("accepted", 1, guided & accepted)
-        return wo, pdf
-
-    def _mixed_target(self, si, cell, wo_local, mix, mean, active) -> mi.Float:
-        """``g = (1 − ε_r)·P(ω)·cos + ε_r·ū`` for a local direction."""
-        table = self.record_table
-        p = dr.gather(mi.Float, table.policy, cell * table.bins.count + table.bins.index(si.to_world(wo_local)),
-                      active)
-        return (1 - mix) * p * dr.abs(wo_local.z) + mix * mean
+        uniform.z *= vertex.side
+        self._count("proposals", proposals, vertex.guided)
+        self._count("rejection_samples", 1, vertex.guided)
+        self._count("accepted", 1, vertex.guided & accepted)
+        return dr.select(fallback, uniform, wo)
 
     # ---------------------------------------------------------------- learning
     def new_paths(self, size: int, max_depth: int):

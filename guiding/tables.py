@@ -1,0 +1,291 @@
+"""Result tables laid out like the paper's, as CSV and Markdown, with the published numbers beside ours.
+
+Input: the metrics.json of every run of one experiment (written by ``python -m guiding.harness evaluate``; each
+holds the run, its metrics, its stats and its provenance) and the experiment's layout (``Plan.experiment_spec``).
+Output: ``{experiment}.csv`` (one row per cell: the mean over seeds, and the paper's number), ``{experiment}.md``
+(the paper's layout, each cell "ours / paper") and ``{experiment}_runs.csv`` (one row per render, with the machine,
+device and versions it ran on).
+
+The published numbers (method.md §8) come from other scenes or resolutions, an 8-bit reference and the authors'
+GPU; they are shown for orientation, not as a target to match digit for digit.
+
+Command line: ``python -m guiding.tables --spec JSON --csv F --md F --runs-csv F METRICS.json...``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .harness import RULE_LABELS, SAMPLER_LABELS
+
+# ------------------------------------------------------------------------------- published numbers (MAE)
+
+#: Supplement Table 1: SARSA + Rej+, half-size images, equal spp; (S, D) -> MAE.
+PAPER_TABLE1 = {
+    (32, 32): 0.0936, (32, 16): 0.0564, (32, 8): 0.0435, (32, 4): 0.0466,
+    (16, 32): 0.0489, (16, 16): 0.0380, (16, 8): 0.0367, (16, 4): 0.0448,
+    (8, 32): 0.0376, (8, 16): 0.0347, (8, 8): 0.0362, (8, 4): 0.0443,
+    (4, 32): 0.0351, (4, 16): 0.0344, (4, 8): 0.0363, (4, 4): 0.0461,
+}
+#: Supplement Table 2: equal spp (1024); (rule, sampler) -> MAE.
+PAPER_TABLE2 = {
+    ("expected_sarsa", "sphere_inv"): 0.0501, ("expected_sarsa", "hemi_inv"): 0.0466,
+    ("expected_sarsa", "hemi_rej"): 0.0531, ("expected_sarsa", "hemi_rej_plus"): 0.0391,
+    ("mc", "sphere_inv"): 0.0482, ("mc", "hemi_inv"): 0.0495, ("mc", "hemi_rej"): 0.0543,
+    ("mc", "hemi_rej_plus"): 0.0380,
+    ("sarsa", "sphere_inv"): 0.0504, ("sarsa", "hemi_inv"): 0.0475, ("sarsa", "hemi_rej"): 0.0551,
+    ("sarsa", "hemi_rej_plus"): 0.0392,
+}
+#: Supplement Table 2's caption: the baselines at 1024 spp; command-line method -> MAE.
+PAPER_TABLE2_EXTRA = {"brdf": 0.0645, "quadtree-grid": 0.0522}
+#: Equal time (paper Fig. 1, supplement Figs. 1-3); scene -> command-line method -> MAE. The kitchen and
+#: veach-ajar2 scenes are not available here.
+PAPER_EQUAL_TIME = {
+    "kitchen": {"brdf": 0.0227, "quadtree-grid": 0.0209, "ours-no-rejopt": 0.0198, "ours-expected": 0.0216,
+                "ours": 0.0190},
+    "staircase2": {"brdf": 0.0146, "quadtree-grid": 0.0101, "ours-no-rejopt": 0.0178, "ours-expected": 0.0107,
+                   "ours": 0.0092},
+    "veach-ajar": {"brdf": 0.0747, "quadtree-grid": 0.0640, "ours-no-rejopt": 0.2010, "ours-expected": 0.0772,
+                   "ours": 0.0740},
+    "veach-ajar2": {"brdf": 0.1233, "quadtree-grid": 0.1066, "ours-no-rejopt": 0.1222, "ours-expected": 0.1323,
+                    "ours": 0.1029},
+}
+
+RUN_COLUMNS = ["experiment", "scene", "method", "cli_method", "label", "seed", "budget", "scale", "resolution", "spp",
+               "seconds", "render_seconds", "compile_seconds", "budget_seconds_counted", "hit_rate", "mae",
+               "mae_hdr", "relmse", "nonfinite_pixels", "host", "device", "variant", "threads", "mitsuba", "drjit",
+               "date"]
+
+
+def paper_value(experiment: str, row: dict) -> float:
+    """The published MAE for a run's cell, or NaN."""
+    if experiment == "table1" and "S" in row:
+        return PAPER_TABLE1.get((row["S"], row["D"]), math.nan)
+    if experiment == "table2":
+        if _is_true(row.get("extra")):
+            return PAPER_TABLE2_EXTRA.get(row["cli_method"], math.nan)
+        if "rule" in row:
+            return PAPER_TABLE2.get((row["rule"], row["sampler"]), math.nan)
+    if experiment == "equal_time":
+        return PAPER_EQUAL_TIME.get(row["scene"], {}).get(row["cli_method"], math.nan)
+    return math.nan
+
+
+# -------------------------------------------------------------------------------------------- data frames
+
+def load_metrics(paths: list[str]) -> list[dict]:
+    return [json.loads(Path(p).read_text()) for p in paths]
+
+
+def runs_frame(rows: list[dict]) -> pd.DataFrame:
+    """One row per render: the run, its metrics, and the machine and device it ran on."""
+    records = []
+    for row in rows:
+        stats, prov = row.get("stats", {}), row.get("provenance", {})
+        record = {**{k: v for k, v in row.items() if k not in ("stats", "provenance", "curve")},
+                  "resolution": "x".join(map(str, stats.get("resolution") or [])), "spp": stats.get("spp"),
+                  "seconds": stats.get("seconds"), "compile_seconds": stats.get("compile_seconds"),
+                  "budget_seconds_counted": stats.get("budget_seconds_counted"), "hit_rate": stats.get("hit_rate"),
+                  **{k: prov.get(k) for k in ("host", "device", "variant", "threads", "mitsuba", "drjit", "date")}}
+        records.append(record)
+    frame = pd.DataFrame.from_records(records)
+    for column in ("mae", "mae_hdr", "relmse"):
+        if column in frame:
+            frame[column] = pd.to_numeric(frame[column], errors="coerce")  # null (non-finite pixels) -> NaN
+    extra = [c for c in frame.columns if c not in RUN_COLUMNS]
+    return frame[[c for c in RUN_COLUMNS if c in frame.columns] + extra]
+
+
+def cells_frame(runs: pd.DataFrame, experiment: str, keys: list[str]) -> pd.DataFrame:
+    """Mean over seeds per cell (``keys``), with the spread, the seed count and the paper's number."""
+    grouped = runs.groupby(keys, sort=False, dropna=False)
+    cells = grouped.agg(mae=("mae", "mean"), mae_std=("mae", "std"), mae_hdr=("mae_hdr", "mean"),
+                        relmse=("relmse", "mean"), seeds=("seed", "count"), spp=("spp", "mean"),
+                        render_seconds=("render_seconds", "mean"), hit_rate=("hit_rate", "mean"),
+                        nonfinite_pixels=("nonfinite_pixels", "sum"), device=("device", _joined)).reset_index()
+    first = grouped.first().reset_index()
+    for column in ("cli_method", "label", "S", "D", "rule", "sampler", "extra"):
+        if column in first and column not in cells:
+            cells[column] = first[column].values
+    cells["paper_mae"] = [paper_value(experiment, row) for row in cells.to_dict("records")]
+    return cells
+
+
+def _is_true(value) -> bool:
+    return isinstance(value, (bool, np.bool_)) and bool(value)
+
+
+def _joined(values) -> str:
+    return "; ".join(sorted({str(v) for v in values}))
+
+
+# ------------------------------------------------------------------------------------------------ Markdown
+
+def fmt(value, digits: int = 4) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "—"
+    return f"{value:.{digits}g}" if isinstance(value, float) else str(value)
+
+
+def ours_paper(cell: dict | None) -> str:
+    if cell is None:
+        return "(not run)"
+    ours = fmt(cell["mae"]) if not math.isnan(cell["mae"]) else f"n/a ({int(cell['nonfinite_pixels'])} non-finite px)"
+    return f"{ours} / {fmt(cell['paper_mae'])}"
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def provenance_note(runs: pd.DataFrame, timed: bool) -> str:
+    devices = runs.groupby(["host", "device", "variant", "threads"], dropna=False).size().reset_index(name="renders")
+    lines = [f"- `{r.host}`: {r.device} ({r.variant}, {fmt(r.threads)} threads): {r.renders} renders"
+             for r in devices.itertuples()]
+    note = "Rendered on:\n" + "\n".join(lines)
+    if timed and len(devices) > 1:
+        note += "\n\n**Warning:** this timed experiment ran on more than one machine or device: its times do not compare."
+    return note
+
+
+def _budget_text(spec: dict) -> str:
+    parts = []
+    for point in spec["budget_points"]:
+        if point["kind"] == "spp":
+            parts.append(f"{int(point['value'])} spp")
+        else:
+            parts.append(f"{point['value']:g} s (first {point['exclude_passes']} passes not counted)")
+    return ", ".join(parts)
+
+
+def _header(spec: dict, runs: pd.DataFrame, title: str) -> str:
+    scales = ", ".join(f"{s} at {r}" for s, r in runs.groupby("scene", sort=False)["resolution"].first().items())
+    return (f"# {title}\n\nBudget: {_budget_text(spec)}; {'timed (each render alone on the machine)' if spec['timed'] else 'untimed'}. "
+            f"Resolutions: {scales}. MAE of the tone-mapped images against a float reference (mean over "
+            f"{runs['seed'].nunique()} seed(s)). Each cell: **ours / paper** (— where the paper has no number; "
+            "the paper's scenes, resolutions and 8-bit reference differ).\n")
+
+
+def table1(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
+    cells = cells_frame(runs, "table1", ["scene", "method"])
+    parts = [_header(spec, runs, "Table 1: spatial (S) x directional (D) resolution of ours, equal spp")]
+    for scene in spec["scenes"]:
+        lookup = {(c["S"], c["D"]): c for c in cells[cells["scene"] == scene].to_dict("records")}
+        rows = [[f"**{S}**", *[ours_paper(lookup.get((S, D))) for D in spec["D"]]] for S in spec["S"]]
+        parts.append(f"## {scene}\n\n" + markdown_table(["S \\ D", *map(str, spec["D"])], rows))
+    parts.append(provenance_note(runs, spec["timed"]))
+    columns = ["scene", "S", "D", "method", "cli_method", "mae", "mae_std", "seeds", "paper_mae", "mae_hdr", "relmse",
+               "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
+    return cells[columns], "\n\n".join(parts) + "\n"
+
+
+def table2(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
+    cells = cells_frame(runs, "table2", ["scene", "method"])
+    parts = [_header(spec, runs, "Table 2: learning rule x sampler, equal spp")]
+    for scene in spec["scenes"]:
+        scene_cells = cells[cells["scene"] == scene].to_dict("records")
+        grid = {(c["rule"], c["sampler"]): c for c in scene_cells if isinstance(c.get("rule"), str)}
+        rows = [[f"**{RULE_LABELS[rule]}**", *[ours_paper(grid.get((rule, s))) for s in spec["samplers"]]]
+                for rule in spec["rules"]]
+        text = f"## {scene}\n\n"
+        if rows:
+            text += markdown_table(["rule", *[SAMPLER_LABELS[s] for s in spec["samplers"]]], rows)
+        extras = [c for c in scene_cells if _is_true(c.get("extra"))]
+        if extras:
+            text += "\n\n" + markdown_table(["method", "MAE ours / paper"],
+                                           [[c["label"], ours_paper(c)] for c in extras])
+        parts.append(text)
+    parts.append(provenance_note(runs, spec["timed"]))
+    for column in ("rule", "sampler", "extra"):
+        if column not in cells:
+            cells[column] = None
+    columns = ["scene", "rule", "sampler", "method", "cli_method", "label", "mae", "mae_std", "seeds", "paper_mae",
+               "mae_hdr", "relmse", "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
+    return cells[columns], "\n\n".join(parts) + "\n"
+
+
+def equal_time(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
+    cells = cells_frame(runs, "equal_time", ["scene", "method"])
+    labels = [spec["labels"].get(m, m) for m in spec["methods"]]
+    lookup = {(c["scene"], c["method"]): c for c in cells.to_dict("records")}
+    mae_rows = [[f"**{scene}**", *[ours_paper(lookup.get((scene, m))) for m in spec["methods"]]]
+                for scene in spec["scenes"]]
+    spp_rows = [[f"**{scene}**", *[(f"{fmt(c['spp'], 6)} spp, {fmt(c['render_seconds'], 3)} s, hit {fmt(c['hit_rate'], 3)}"
+                                    if (c := lookup.get((scene, m))) else "(not run)") for m in spec["methods"]]]
+                for scene in spec["scenes"]]
+    text = "\n\n".join([
+        _header(spec, runs, "Equal time"),
+        markdown_table(["scene", *labels], mae_rows),
+        "Samples reached, render + update time (compilation excluded), hit rate:",
+        markdown_table(["scene", *labels], spp_rows),
+        provenance_note(runs, spec["timed"])]) + "\n"
+    columns = ["scene", "method", "cli_method", "label", "mae", "mae_std", "seeds", "paper_mae", "mae_hdr", "relmse",
+               "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
+    return cells[columns], text
+
+
+def convergence(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
+    cells = cells_frame(runs, "convergence", ["scene", "method", "budget"])
+    budgets = list(dict.fromkeys(runs["budget"]))
+    lookup = {(c["scene"], c["method"], c["budget"]): c for c in cells.to_dict("records")}
+    rows = []
+    for scene in spec["scenes"]:
+        for method in spec["methods"]:
+            row = [f"**{scene}**", spec["labels"].get(method, method)]
+            for budget in budgets:
+                c = lookup.get((scene, method, budget))
+                row.append(f"{fmt(c['mae'])} @ {fmt(c['render_seconds'], 3)} s" if c else "(not run)")
+            rows.append(row)
+    text = "\n\n".join([
+        _header(spec, runs, "Convergence: error against time"),
+        "Each cell: MAE @ render + update seconds (compilation excluded).",
+        markdown_table(["scene", "method", *budgets], rows),
+        provenance_note(runs, spec["timed"])]) + "\n"
+    columns = ["scene", "method", "cli_method", "label", "budget", "mae", "mae_std", "seeds", "mae_hdr", "relmse",
+               "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
+    return cells[columns], text
+
+
+BUILDERS = {"table1": table1, "table2": table2, "equal_time": equal_time, "convergence": convergence}
+
+
+def build(spec: dict, rows: list[dict]) -> tuple[pd.DataFrame, str, pd.DataFrame]:
+    """(cells CSV frame, Markdown text, runs CSV frame) of one experiment."""
+    runs = runs_frame(rows)
+    cells, text = BUILDERS[spec["name"]](spec, runs)
+    return cells, text, runs
+
+
+def write(spec: dict, metrics_files: list[str], csv: str, md: str, runs_csv: str) -> None:
+    from .harness import _write_text_atomic
+
+    cells, text, runs = build(spec, load_metrics(metrics_files))
+    _write_text_atomic(csv, cells.to_csv(index=False, float_format="%.6g"))
+    _write_text_atomic(md, text)
+    _write_text_atomic(runs_csv, runs.to_csv(index=False, float_format="%.6g"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m guiding.tables", description=__doc__.splitlines()[0])
+    parser.add_argument("--spec", required=True, help="the experiment's layout as JSON (Plan.experiment_spec)")
+    parser.add_argument("--csv", required=True)
+    parser.add_argument("--md", required=True)
+    parser.add_argument("--runs-csv", required=True)
+    parser.add_argument("metrics", nargs="+")
+    args = parser.parse_args(argv)
+    write(json.loads(args.spec), args.metrics, args.csv, args.md, args.runs_csv)
+    print(Path(args.md).read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

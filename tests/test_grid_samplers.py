@@ -1,0 +1,76 @@
+"""Every grid sampler draws directions with exactly the density it reports (Mitsuba's chi-square test)."""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+from mitsuba.chi2 import ChiSquareTest, SphericalDomain
+
+from guiding.guides import SAMPLERS
+from guiding.guides.grid import GridGuide
+
+
+def _vertex_setup(guide: GridGuide, normal, size: int):
+    """A diffuse surface interaction at the centre of cell 0 with ``normal``, ``size`` lanes wide."""
+    si = dr.zeros(mi.SurfaceInteraction3f, size)
+    si.p = mi.Point3f(0.05, 0.05, 0.05)
+    si.n = mi.Normal3f(normal)
+    si.sh_frame = mi.Frame3f(si.n)
+    si.wi = mi.Vector3f(0, 0, 1)
+    return si
+
+
+def _trained_guide(sampler: str, D: int, table: str, normal) -> GridGuide:
+    """A guide whose Q in cell 0 is random: ``peaked`` (a few bright bins) or ``flat`` (within 10 %)."""
+    guide = GridGuide(spatial_resolution=2, directional_resolution=D, rule="sarsa", sampler=sampler)
+    record = guide.record_table
+    record.set_bounds(mi.BoundingBox3f(mi.ScalarPoint3f(0), mi.ScalarPoint3f(1)))
+    rng = np.random.default_rng(D + len(table) + SAMPLERS.index(sampler))
+    B = record.bins.count
+    q = np.zeros(record.cells * B)
+    if table == "peaked":
+        q[rng.choice(B, 3, replace=False)] = rng.uniform(50, 100, 3)
+        q[:B] += rng.uniform(0, 0.5, B)
+    else:
+        q[:B] = 1 + 0.1 * rng.random(B)
+    record.acc_sum = mi.Float64(q)
+    record.acc_count = mi.Float64(np.ones_like(q))
+    if record.needs_pairs:
+        pair = record.pair(mi.UInt32(0), mi.Vector3f(normal))
+        dr.scatter(record.visited, mi.UInt32(1), pair)
+    guide.update(spp_done=150)   # ε = 0.1^1.5: the policy follows Q closely
+    return guide
+
+
+#: A normal at a normal-bin centre but off the axes (the memoised N is exact there), and an axis normal.
+NORMALS = {"oblique": None, "axis": (0.0, 0.0, 1.0)}
+
+
+@pytest.mark.parametrize("sampler", SAMPLERS)
+@pytest.mark.parametrize("D", [4, 16])
+@pytest.mark.parametrize("table", ["peaked", "flat"])
+@pytest.mark.parametrize("normal_name", ["oblique", "axis"])
+def test_sampler_pdf_matches_samples(sampler, D, table, normal_name):
+    from guiding.directions import NormalBins
+
+    normal = NORMALS[normal_name] or tuple(float(c[0]) for c in NormalBins(5).normal(mi.UInt32(7)))
+    guide = _trained_guide(sampler, D, table, normal)
+    bsdf = mi.load_dict({"type": "diffuse", "reflectance": 0.5})
+    ctx = mi.BSDFContext()
+
+    def sample_func(sample):
+        size = dr.width(sample)
+        sampler_ = mi.load_dict({"type": "independent"})
+        sampler_.seed(7, size)
+        si = _vertex_setup(guide, normal, size)
+        bs, _ = guide.sample(None, sampler_, si, mi.BSDFPtr(bsdf), ctx, dr.full(mi.Bool, True, size))
+        return si.to_world(bs.wo)
+
+    def pdf_func(wo):
+        size = dr.width(wo)
+        si = _vertex_setup(guide, normal, size)
+        return guide.pdf(si, mi.BSDFPtr(bsdf), ctx, si.to_local(wo), dr.full(mi.Bool, True, size))
+
+    test = ChiSquareTest(domain=SphericalDomain(), sample_func=sample_func, pdf_func=pdf_func, sample_dim=2,
+                         sample_count=400_000, res=64, ires=32)
+    assert test.run(), test.messages
