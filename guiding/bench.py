@@ -62,11 +62,11 @@ def baseline_vs_mitsuba(scenes: list[tuple[str, float]], passes: int = 12, max_d
     return pd.DataFrame(rows)
 
 
-def write_table(frame: pd.DataFrame, stem: Path, title: str, device: str) -> None:
-    """``stem.csv`` and ``stem.md`` (the Markdown names the device and date)."""
+def write_table(frame: pd.DataFrame, stem: Path, title: str, device: str, command: str) -> None:
+    """``stem.csv`` and ``stem.md`` (the Markdown names the device, the date and the command that made it)."""
     stem.parent.mkdir(parents=True, exist_ok=True)
     frame.to_csv(stem.with_suffix(".csv"), index=False, float_format="%.4g")
     markdown = frame.to_markdown(index=False, floatfmt=".4g")
     stem.with_suffix(".md").write_text(f"# {title}\n\nDevice: {device}. Generated {time.strftime('%Y-%m-%d')} by "
-                                       f"`python -m guiding bench`.\n\n{markdown}\n")
+                                       f"`{command}`.\n\n{markdown}\n")
 

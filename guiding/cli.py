@@ -99,6 +99,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="results/demo")
     _add_backend_options(demo)
 
+    validate = commands.add_parser("validate", help="grid guide checks written to results/: unbiasedness of every "
+                                   "rule x sampler, and learning (MAE, hit rate) at equal spp")
+    validate.add_argument("--out", default="results")
+    validate.add_argument("--quick", action="store_true", help="smaller budgets (a smoke run)")
+    _add_backend_options(validate)
+
     commands.add_parser("scenes", help="list the scenes on the search path")
     commands.add_parser("methods", help="list the method names")
     return parser
@@ -238,7 +244,7 @@ def _command_bench(args) -> None:
     device = _device_name(variant)
     tag = "gpu" if variant.startswith("cuda") else "cpu"
     write_table(frame, out / f"baseline_{tag}", "Time per spp: `brdf` (ours, no NEE) vs Mitsuba `path` (NEE+MIS), "
-                "max depth 16", device)
+                "max depth 16", device, "python -m guiding bench")
     print(frame.to_string(index=False))
 
 
@@ -278,6 +284,27 @@ def _command_demo(args) -> None:
     print(table)
 
 
+def _command_validate(args) -> None:
+    from .backend import set_variant
+
+    out = _prepare_output_dir(args.out)
+    variant = set_variant(args.variant, args.threads)
+    from .bench import write_table
+    from .validation import learning_table, unbiasedness_table
+
+    device = _device_name(variant)
+    passes, spp = (6, 8) if args.quick else (24, 32)
+    unbiased = unbiasedness_table(passes=passes, spp=spp)
+    write_table(unbiased, out / "grid_unbiasedness", f"Image mean of every rule x sampler vs Mitsuba `path` "
+                f"(door-ajar, scale 0.1, {passes} passes x {spp} spp; agrees = all channels within 4 standard "
+                "errors)", device, "python -m guiding validate")
+    print(unbiased.to_string(index=False))
+    learning = learning_table(spp=64 if args.quick else 256, reference_spp=256 if args.quick else 4096)
+    write_table(learning, out / "learning", "Equal spp on door-ajar (scale 0.25): MAE vs a `path` reference",
+                device, "python -m guiding validate")
+    print(learning.to_string(index=False))
+
+
 def _command_scenes(args) -> None:
     from .scenes import available_scenes, search_path
 
@@ -293,7 +320,7 @@ def _command_methods(args) -> None:
 
 
 COMMANDS = {"render": _command_render, "reference": _command_reference, "evaluate": _command_evaluate,
-            "bench": _command_bench, "demo": _command_demo, "scenes": _command_scenes, "methods": _command_methods}
+            "bench": _command_bench, "validate": _command_validate, "demo": _command_demo, "scenes": _command_scenes, "methods": _command_methods}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,7 +5,7 @@ import pytest
 
 from guiding.integrator import GuidedPathIntegrator
 
-from unbiased import Z_LIMIT, pass_means, z_scores
+from guiding.validation import Z_LIMIT, pass_means, z_scores
 
 
 def test_brdf_matches_mitsuba_path(cornell):

@@ -26,7 +26,7 @@ import mitsuba as mi
 
 from . import RULES, SAMPLERS
 from .base import Guide
-from .grid_record import RadianceRecord
+from .grid_record import MIN_EXPLORATION, RadianceRecord
 #: Index of "no (cell, bin) to record into".
 NO_RECORD = 0xFFFFFFFF
 
@@ -80,6 +80,7 @@ class GridGuide(Guide):
       normal_resolution: odd cube-map resolution of the memo tables' normal bins (default 5: 150 bins).
       bsdf_fraction: BSDF share of the ``sphere_inv`` mixture (default 0.5).
       max_proposals: cap of the rejection loop (default 64).
+      min_exploration: floor of the exploration share ε (default 0.01; 0 is the paper's schedule exactly).
       name: the method name shown in tables.
     """
 
@@ -87,7 +88,7 @@ class GridGuide(Guide):
 
     def __init__(self, spatial_resolution: int = 8, directional_resolution: int = 16, rule: str = "sarsa",
                  sampler: str = "hemi_rej_plus", normal_resolution: int = 5, bsdf_fraction: float = 0.5,
-                 max_proposals: int = 64, name: str | None = None):
+                 max_proposals: int = 64, min_exploration: float = MIN_EXPLORATION, name: str | None = None):
         if rule not in RULES:
             raise ValueError(f"unknown learning rule '{rule}' (choose from {', '.join(RULES)})")
         if sampler not in SAMPLERS:
@@ -99,7 +100,8 @@ class GridGuide(Guide):
         self.record_table = RadianceRecord(
             spatial_resolution, directional_resolution, normal_resolution,
             needs_cdf=sampler == "sphere_inv", needs_memo=sampler.startswith("hemi"),
-            needs_hemi_cdf=sampler == "hemi_inv", needs_value=rule == "expected_sarsa")
+            needs_hemi_cdf=sampler == "hemi_inv", needs_value=rule == "expected_sarsa",
+            min_exploration=min_exploration)
         self.trained = False
         self._mc_buffers = None
         self._reset_counters()

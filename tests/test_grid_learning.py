@@ -1,0 +1,124 @@
+"""Learning rules record the targets of method.md §3, checked against hand-computed values on a three-vertex path."""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from guiding.guides.grid import GridGuide
+
+ALBEDO = 0.6
+
+
+@pytest.fixture(scope="module")
+def floor():
+    """A diffuse floor (z = 0, normal +z) over [-2, 2]²: three rays straight down give three vertices."""
+    return mi.load_dict({"type": "scene", "floor": {
+        "type": "rectangle", "to_world": mi.ScalarTransform4f().scale([2, 2, 1]),
+        "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": ALBEDO}}}})
+
+
+def _vertex(scene, x, y):
+    return scene.ray_intersect(mi.Ray3f(mi.Point3f(x, y, 1), mi.Vector3f(0, 0, -1)))
+
+
+def _direction(x, y, z):
+    bs = dr.zeros(mi.BSDFSample3f, 1)
+    bs.wo = dr.normalize(mi.Vector3f(x, y, z))
+    return bs
+
+
+def _run_path(guide, scene, continue_last=False):
+    """Vertices v1 → v2 → v3: v1 emits nothing, v2 emits 0.1 (grey), v3 emits (1, 2, 3) and ends the path.
+
+    Returns the (cell, bin) indices of the segments v1→v2 and v2→v3.
+    """
+    record = guide.record_table
+    record.set_bounds(scene.bbox())
+    vertices = [_vertex(scene, -1.5, -1.5), _vertex(scene, 0.5, 0.5), _vertex(scene, 1.5, -0.5)]
+    directions = [_direction(0.3, 0.2, 0.9), _direction(-0.5, 0.1, 0.8), _direction(0.1, 0.1, 1.0)]
+    emitted = [mi.Color3f(0), mi.Color3f(0.1), mi.Color3f(1, 2, 3)]
+    weights = [mi.Color3f(0.5), mi.Color3f(0.8, 0.4, 0.6), mi.Color3f(0)]
+    continues = [mi.Bool(True), mi.Bool(True), mi.Bool(continue_last)]
+    state = guide.new_paths(1, 16)
+    for si, bs, le, w, go in zip(vertices, directions, emitted, weights, continues):
+        state = guide.record(state, si, le, bs, w, go, mi.Bool(True))
+    guide.finish_paths(state)
+    indices = [record.index(si.p, si.to_world(bs.wo)) for si, bs in zip(vertices[:2], directions[:2])]
+    return [int(i[0]) for i in indices], vertices
+
+
+def _recorded(guide):
+    """{index: (sum, count)} of every (cell, bin) that received a target."""
+    record = guide.record_table
+    sums, counts = record.acc_sum.numpy(), record.acc_count.numpy()
+    return {int(i): (sums[i], counts[i]) for i in np.flatnonzero(counts)}
+
+
+def test_monte_carlo_walks_back_with_the_path_weights(floor):
+    guide = GridGuide(4, 4, rule="mc", sampler="hemi_rej_plus")
+    (first, second), _ = _run_path(guide, floor)
+    expected_second = (1 + 2 + 3) / 3                                             # Le(v3)
+    expected_first = np.mean(np.array([0.1] * 3) + np.array([0.8, 0.4, 0.6]) * [1, 2, 3])  # Le(v2) + w2·Le(v3)
+    recorded = _recorded(guide)
+    assert set(recorded) == {first, second}
+    assert recorded[second] == pytest.approx((expected_second, 1))
+    assert recorded[first] == pytest.approx((expected_first, 1))
+
+
+def test_sarsa_bootstraps_from_q_at_the_next_vertex(floor):
+    guide = GridGuide(4, 4, rule="sarsa", sampler="hemi_rej_plus")
+    q_next = 2.5
+    record = guide.record_table
+    record.set_bounds(floor.bbox())
+    (first, second), _ = _run_path(GridGuide(4, 4, rule="sarsa", sampler="hemi_rej_plus"), floor)  # indices only
+    dr.scatter(record.q, q_next, mi.UInt32(second))
+    _run_path(guide, floor)
+    recorded = _recorded(guide)
+    assert set(recorded) == {first, second}
+    assert recorded[first] == pytest.approx((0.1 + np.mean([0.8, 0.4, 0.6]) * q_next, 1))
+    assert recorded[second] == pytest.approx((2.0, 1))                            # the path ends: Le only
+
+
+def test_expected_sarsa_reads_the_memoised_integral(floor):
+    guide = GridGuide(4, 4, rule="expected_sarsa", sampler="hemi_rej_plus")
+    record = guide.record_table
+    record.set_bounds(floor.bbox())
+    v2 = _vertex(floor, 0.5, 0.5)
+    pair = record.pair(record.cell(v2.p), mi.Vector3f(0, 0, 1))
+    integral = 3.0
+    dr.scatter(record.value, integral, pair)
+    dr.scatter(record.norm, 1.0, pair)  # marks the memo as computed
+    (first, second), _ = _run_path(guide, floor)
+    recorded = _recorded(guide)
+    assert recorded[first] == pytest.approx((0.1 + ALBEDO / np.pi * integral, 1), rel=1e-5)
+    # v3 lies in a pair without a memo and ends the path: the target is its emission.
+    assert recorded[second] == pytest.approx((2.0, 1))
+
+
+@pytest.mark.parametrize("rule", ["mc", "sarsa"])
+def test_segment_that_is_not_traced_records_nothing(floor, rule):
+    """A guided direction below the surface (weight 0, path ends) leaves its own (cell, bin) untouched."""
+    guide = GridGuide(4, 4, rule=rule, sampler="hemi_rej_plus")
+    record = guide.record_table
+    record.set_bounds(floor.bbox())
+    si = _vertex(floor, 0.0, 0.0)
+    below = _direction(0.2, 0.0, -1.0)
+    state = guide.new_paths(1, 16)
+    state = guide.record(state, si, mi.Color3f(0), below, mi.Color3f(0), mi.Bool(False), mi.Bool(True))
+    guide.finish_paths(state)
+    assert _recorded(guide) == {}
+
+
+def test_running_mean_and_exploration():
+    guide = GridGuide(1, 1, rule="sarsa", sampler="sphere_inv")
+    record = guide.record_table
+    record.acc_sum = mi.Float64([6.0, 0.0])
+    record.acc_count = mi.Float64([3.0, 0.0])
+    guide.update(spp_done=100)                          # ε = 0.1
+    q = record.q.numpy()
+    assert q == pytest.approx([2.0, 0.0])
+    shifted = np.array([2.0, 0.0]) + 1e-6
+    expected = 0.9 * shifted / shifted.sum() + 0.1 / 2
+    assert record.policy.numpy() == pytest.approx(expected, rel=1e-6)
+    assert record.cdf.numpy() == pytest.approx(np.cumsum(expected), rel=1e-6)
