@@ -87,6 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--scenes", default="cornell:1,door-ajar:1",
                        help="comma-separated NAME:SCALE list (default cornell:1,door-ajar:1)")
     bench.add_argument("--passes", type=_positive_int, default=12, help="timed passes per integrator")
+    bench.add_argument("--methods", default="ours,ours-no-rejopt,ours-expected,sarsa-sphere_inv,sarsa-hemi_inv",
+                       help="methods timed against brdf (comma-separated)")
     bench.add_argument("--out", default="results/bench", help="output folder (default results/bench)")
     _add_backend_options(bench)
 
@@ -236,16 +238,27 @@ def _command_bench(args) -> None:
     scenes = _parse_scene_list(args.scenes)
     for name, _ in scenes:
         find_scene(name)
+    from .methods import check_method
+
+    for method in filter(None, args.methods.split(",")):
+        check_method(method)
     out = _prepare_output_dir(args.out)
     variant = set_variant(args.variant, args.threads)
-    from .bench import baseline_vs_mitsuba, write_table
+    from .bench import baseline_vs_mitsuba, methods_vs_brdf, write_table
 
-    frame = baseline_vs_mitsuba(scenes, passes=args.passes)
     device = _device_name(variant)
     tag = "gpu" if variant.startswith("cuda") else "cpu"
+    frame = baseline_vs_mitsuba(scenes, passes=args.passes)
     write_table(frame, out / f"baseline_{tag}", "Time per spp: `brdf` (ours, no NEE) vs Mitsuba `path` (NEE+MIS), "
                 "max depth 16", device, "python -m guiding bench")
     print(frame.to_string(index=False))
+    methods = [m for m in args.methods.split(",") if m]
+    if methods:
+        frame = methods_vs_brdf(scenes, methods, passes=args.passes)
+        write_table(frame, out / f"methods_{tag}", "Time per spp of guided methods vs `brdf` (same run, interleaved "
+                    "passes of 8 spp, after 2 warm-up passes) and the guide update's share of a pass", device,
+                    "python -m guiding bench")
+        print(frame.to_string(index=False))
 
 
 def _command_demo(args) -> None:
