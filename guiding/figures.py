@@ -144,7 +144,9 @@ def convergence_series(rows: list[dict]) -> dict[str, dict[str, list[tuple[float
 
 
 def convergence(job: dict, metrics_files: list[str], out: str | Path) -> None:
-    """Error against time: one panel per scene, one line per method, log-log."""
+    """Error against time: one panel per scene, one line per method (log axes where the data spans enough)."""
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
     rows = [json.loads(Path(p).read_text()) for p in metrics_files]
     series = convergence_series(rows)
     scenes = [s for s in job.get("scenes", sorted(series)) if s in series]
@@ -154,8 +156,13 @@ def convergence(job: dict, metrics_files: list[str], out: str | Path) -> None:
         for label, points in series[scene].items():
             times, errors = zip(*points)
             ax.plot(times, errors, marker="o", markersize=3, label=label)
-        ax.set_xscale("log")
-        ax.set_yscale("log")
+        times = [t for points in series[scene].values() for t, _ in points]
+        errors = [e for points in series[scene].values() for _, e in points if np.isfinite(e)]
+        for axis, setter, values in ((ax.xaxis, ax.set_xscale, times), (ax.yaxis, ax.set_yscale, errors)):
+            if values and min(values) > 0 and max(values) / min(values) > 3:  # log only where it spans enough
+                setter("log")
+                axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
+                axis.set_minor_formatter(NullFormatter())
         ax.set_title(scene, fontsize=10)
         ax.set_xlabel("render + update seconds (compilation excluded)", fontsize=8)
         ax.set_ylabel("MAE (tone-mapped)", fontsize=8)
@@ -174,23 +181,25 @@ def heatmap(cells_csv: str | Path, out: str | Path) -> None:
     from .tables import PAPER_TABLE1
 
     cells = pd.read_csv(cells_csv)
-    S = sorted(set(cells["S"]), reverse=True)
-    D = sorted(set(cells["D"]), reverse=True)
-    panels = [(f"ours: {scene}", {(r.S, r.D): r.mae for r in group.itertuples()})
+    panels = [(f"ours: {scene}", {(int(r.S), int(r.D)): r.mae for r in group.itertuples()})
               for scene, group in cells.groupby("scene", sort=False)]
     panels.append(("paper (supplement Table 1)", PAPER_TABLE1))
-    figure = _figure(0.9 * len(D) * len(panels) + 1.2 * len(panels), 0.75 * len(S) + 1.2)
-    axes = figure.subplots(1, len(panels), squeeze=False)[0]
+    widths = [len({d for _, d in values}) for _, values in panels]
+    figure = _figure(sum(1.0 * w + 2.0 for w in widths), 0.8 * max(len({s for s, _ in v}) for _, v in panels) + 1.6)
+    axes = figure.subplots(1, len(panels), squeeze=False, width_ratios=[w + 1.2 for w in widths])[0]
     for ax, (title, values) in zip(axes, panels):
+        S = sorted({s for s, _ in values}, reverse=True)
+        D = sorted({d for _, d in values}, reverse=True)
         grid = np.array([[values.get((s, d), np.nan) for d in D] for s in S], dtype=float)
         finite = grid[np.isfinite(grid)]
         image = ax.imshow(grid, cmap="viridis_r", vmin=finite.min() if finite.size else None,
                           vmax=finite.max() if finite.size else None)
         for i in range(len(S)):
             for j in range(len(D)):
-                text = f"{grid[i, j]:.4f}" if np.isfinite(grid[i, j]) else "—"
-                ax.text(j, i, text, ha="center", va="center", fontsize=7, color="white" if np.isfinite(
-                    grid[i, j]) and finite.size and grid[i, j] < np.median(finite) else "black")
+                spread = np.ptp(finite) if finite.size else 0.0
+                dark = spread > 0 and np.isfinite(grid[i, j]) and (grid[i, j] - finite.min()) / spread > 0.55
+                ax.text(j, i, f"{grid[i, j]:.4f}" if np.isfinite(grid[i, j]) else "—", ha="center", va="center",
+                        fontsize=7, color="white" if dark else "black")
         ax.set_xticks(range(len(D)), [str(d) for d in D])
         ax.set_yticks(range(len(S)), [str(s) for s in S])
         ax.set_xlabel("D (directional)", fontsize=8)

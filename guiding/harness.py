@@ -30,7 +30,6 @@ import itertools
 import json
 import os
 import platform
-import re
 import shlex
 import socket
 import subprocess
@@ -104,7 +103,8 @@ def _format_schema_error(error) -> str:
         return f"{where}: {json.dumps(error.instance)} is not one of {choices}"
     if error.validator == "oneOf" and isinstance(error.instance, dict) and {"spp", "seconds"} & set(error.schema.get(
             "properties", {})):
-        return f"{where}: give exactly one of 'spp' and 'seconds' (got {', '.join(sorted(error.instance)) or 'none'})"
+        given = sorted({"spp", "seconds"} & set(error.instance))
+        return f"{where}: give exactly one of 'spp' and 'seconds' (got {' and '.join(given) or 'neither'})"
     if error.validator == "propertyNames":
         return f"{where}: bad name {json.dumps(error.instance)} (letters, digits and _ . + - only)"
     return f"{where}: {error.message}"
@@ -210,6 +210,16 @@ class Plan:
             raise ConfigError(f"no run {'/'.join(key)} in this configuration (see `python -m guiding.harness runs`)")\
                 from None
 
+    def scene_file(self, scene: str) -> list[str]:
+        """The scene's XML file as a job input (so an edited scene re-renders), or nothing when it is not on the
+        search path (the job then fails with the command line's own message)."""
+        from .scenes import find_scene
+
+        try:
+            return [str(find_scene(scene, self.config["scene_dirs"]))]
+        except GuidingError:
+            return []
+
     def reference_for(self, run: Run) -> Reference:
         return self.references[(run.scene, run.scale)]
 
@@ -266,6 +276,8 @@ class Plan:
         render = self.config["render"]
         args = ["render", *self._common_args(run.scene, run.scale, run.seed), "--method", run.cli_method,
                 *run.budget.cli_args(), "--pass-spp", str(render["pass_spp"]), "--max-depth", str(render["max_depth"])]
+        if self.config["experiments"][run.experiment].get("snapshots"):
+            args.append("--snapshots")
         return shlex.join(args)
 
     def reference_args(self, scene: str, scale: float, spp: int) -> str:
@@ -406,6 +418,19 @@ def expand(config: dict) -> tuple[list[Run], dict[tuple[str, float], Reference]]
     return runs, references
 
 
+def missing_scenes(config: dict, runs: list[Run]) -> list[str]:
+    """Scenes of the runs that are not on the scene search path."""
+    from .scenes import find_scene
+
+    missing = []
+    for scene in sorted({r.scene for r in runs}):
+        try:
+            find_scene(scene, config["scene_dirs"])
+        except GuidingError:
+            missing.append(scene)
+    return missing
+
+
 def check_methods(runs: list[Run]) -> list[str]:
     """Command-line methods this checkout does not know (empty when the method registry cannot be imported)."""
     try:
@@ -434,11 +459,17 @@ def plan(config: dict, schema: str | os.PathLike = SCHEMA, check: bool = True) -
     warnings = []
     if check:
         unknown = check_methods(runs)
-        if unknown and config["strict_methods"]:
+        if unknown and config["strict"]:
             raise ConfigError(f"methods: unknown to this checkout: {', '.join(unknown)} "
-                              "(see `python -m guiding methods`; or set strict_methods: false)")
+                              "(see `python -m guiding methods`; or set strict: false)")
         if unknown:
             warnings.append(f"methods unknown to this checkout (their renders will fail): {', '.join(unknown)}")
+        missing = missing_scenes(config, runs)
+        if missing and config["strict"]:
+            raise ConfigError(f"scenes: not on the scene search path: {', '.join(missing)} (see `python -m guiding "
+                              "scenes`; add folders with scene_dirs or $GUIDING_SCENES; or set strict: false)")
+        if missing:
+            warnings.append(f"scenes not on the scene search path (their jobs will fail): {', '.join(missing)}")
     return Plan(config, runs, references, warnings)
 
 

@@ -7,8 +7,9 @@ statistics shows it.
 
 Timing: ``seconds`` of a pass is wall time from launch to synchronisation, compilation included;
 ``compile_seconds`` is the part Dr.Jit spent generating and compiling code (from its kernel history). A seconds
-budget counts pass and update time, but not the first ``exclude_passes`` passes (the paper excluded its first
-80 spp, which contained compilation).
+budget counts pass and update time without compilation (a guide compiles a second kernel once it starts guiding,
+which would otherwise eat a short budget), and not the first ``exclude_passes`` passes at all (the paper excluded
+its first 80 spp, which contained compilation).
 """
 
 from __future__ import annotations
@@ -63,6 +64,10 @@ class PassStats:
     hit_rate: float          # fraction of paths with a non-zero contribution
     guide: dict = field(default_factory=dict)
 
+    @property
+    def counted_seconds(self) -> float:
+        return max(self.seconds - self.compile_seconds, 0.0) + self.update_seconds
+
 
 @dataclass
 class RenderResult:
@@ -92,8 +97,8 @@ class RenderResult:
                 "hit_rate": self.hit_rate, "budget": asdict(self.budget)}
 
     def counted_seconds(self) -> float:
-        """Time counted against a seconds budget (excluded leading passes left out)."""
-        return sum(p.seconds + p.update_seconds for p in self.passes[self.budget.exclude_passes:])
+        """Time counted against a seconds budget: excluded leading passes and compilation left out."""
+        return sum(p.counted_seconds for p in self.passes[self.budget.exclude_passes:])
 
 
 def pass_seed(seed: int, index: int) -> int:
@@ -195,7 +200,7 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
                 passes.append(PassStats(index, spp, spp_total, seconds, update_seconds, compile_seconds, launched,
                                         compiled, float(hit_rate), guide_stats))
                 if index >= budget.exclude_passes:
-                    counted += seconds + update_seconds
+                    counted += passes[-1].counted_seconds
                 display.show(spp_total, counted)
     finally:
         display.close()

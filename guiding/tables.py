@@ -149,11 +149,12 @@ def markdown_table(header: list[str], rows: list[list[str]]) -> str:
 
 def provenance_note(runs: pd.DataFrame, timed: bool) -> str:
     devices = runs.groupby(["host", "device", "variant", "threads"], dropna=False).size().reset_index(name="renders")
-    lines = [f"- `{r.host}`: {r.device} ({r.variant}, {fmt(r.threads)} threads): {r.renders} renders"
+    lines = [f"- `{r.host}`: {r.device}, {r.variant}, threads {fmt(r.threads)}: {r.renders} render(s)"
              for r in devices.itertuples()]
     note = "Rendered on:\n" + "\n".join(lines)
     if timed and len(devices) > 1:
-        note += "\n\n**Warning:** this timed experiment ran on more than one machine or device: its times do not compare."
+        note += ("\n\n**Warning:** this timed experiment ran on more than one machine or device: its times do not "
+                 "compare.")
     return note
 
 
@@ -169,10 +170,12 @@ def _budget_text(spec: dict) -> str:
 
 def _header(spec: dict, runs: pd.DataFrame, title: str) -> str:
     scales = ", ".join(f"{s} at {r}" for s, r in runs.groupby("scene", sort=False)["resolution"].first().items())
-    return (f"# {title}\n\nBudget: {_budget_text(spec)}; {'timed (each render alone on the machine)' if spec['timed'] else 'untimed'}. "
+    timing = "timed (each render alone on the machine)" if spec["timed"] else "untimed"
+    return (f"# {title}\n\nBudget: {_budget_text(spec)}; {timing}. "
             f"Resolutions: {scales}. MAE of the tone-mapped images against a float reference (mean over "
-            f"{runs['seed'].nunique()} seed(s)). Each cell: **ours / paper** (— where the paper has no number; "
-            "the paper's scenes, resolutions and 8-bit reference differ).\n")
+            f"{runs['seed'].nunique()} seed(s)). "
+            + ("" if spec["name"] == "convergence" else "Each cell: **ours / paper** (— where the paper has no "
+               "number; the paper's scenes, resolutions and 8-bit reference differ)."))
 
 
 def table1(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
@@ -219,8 +222,12 @@ def equal_time(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
     lookup = {(c["scene"], c["method"]): c for c in cells.to_dict("records")}
     mae_rows = [[f"**{scene}**", *[ours_paper(lookup.get((scene, m))) for m in spec["methods"]]]
                 for scene in spec["scenes"]]
-    spp_rows = [[f"**{scene}**", *[(f"{fmt(c['spp'], 6)} spp, {fmt(c['render_seconds'], 3)} s, hit {fmt(c['hit_rate'], 3)}"
-                                    if (c := lookup.get((scene, m))) else "(not run)") for m in spec["methods"]]]
+    def reached(cell: dict | None) -> str:
+        if cell is None:
+            return "(not run)"
+        return f"{fmt(cell['spp'], 6)} spp, {fmt(cell['render_seconds'], 3)} s, hit {fmt(cell['hit_rate'], 3)}"
+
+    spp_rows = [[f"**{scene}**", *[reached(lookup.get((scene, m))) for m in spec["methods"]]]
                 for scene in spec["scenes"]]
     text = "\n\n".join([
         _header(spec, runs, "Equal time"),

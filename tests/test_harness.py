@@ -1,0 +1,443 @@
+"""The Snakemake experiment harness: configuration checks, the expansion into runs, tables and figures, and the
+workflow itself run end to end on the CI configuration (tiny scenes and budgets, `brdf` only).
+
+The end-to-end tests share one run of `snakemake --cores 2 --configfile config/ci.yaml` in a temporary working
+directory (`--directory`), so the repository is never written to.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from guiding import figures, harness, imageio, tables
+
+ROOT = Path(__file__).resolve().parent.parent
+CI_CONFIG = ROOT / "config" / "ci.yaml"
+FULL_CONFIG = ROOT / "config" / "config.yaml"
+
+
+def snakemake(*args, cwd=ROOT, timeout=300, **kwargs) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), *map(str, args)],
+                          cwd=cwd, capture_output=True, text=True, timeout=timeout, **kwargs)
+
+
+def job_counts(output: str) -> dict[str, int]:
+    """The 'Job stats' table of a Snakemake dry run: rule -> number of jobs."""
+    import re
+
+    table = output.rsplit("Job stats:", 1)[1].split("\n\n", 1)[0]
+    return {rule: int(n) for rule, n in re.findall(r"^(\w+)\s+(\d+)$", table, flags=re.MULTILINE)}
+
+
+def ci_config() -> dict:
+    return harness.load_config(CI_CONFIG)
+
+
+# ------------------------------------------------------------------------------------ configuration, plan
+
+def test_full_config_expands_into_the_papers_experiments():
+    plan = harness.plan(harness.load_config(FULL_CONFIG), check=False)
+    by_experiment = {e: plan.experiment_runs(e) for e in plan.experiments()}
+    table1 = {r.method for r in by_experiment["table1"]}
+    assert table1 == {f"ours-S{S}-D{D}" for S in (32, 16, 8, 4) for D in (32, 16, 8, 4)}
+    table2 = {r.method for r in by_experiment["table2"]}
+    assert {"mc-sphere_inv", "sarsa-hemi_rej_plus", "expected_sarsa-hemi_inv", "brdf", "quadtree-grid"} <= table2
+    assert len(table2) == 3 * 4 + 2
+    assert {r.method for r in by_experiment["equal_time"]} == {"brdf", "quadtree-grid", "ours-no-rejopt",
+                                                               "ours-expected", "ours", "sdtree"}
+    assert all(r.timed for r in by_experiment["equal_time"] + by_experiment["convergence"])
+    assert not any(r.timed for r in by_experiment["table1"] + by_experiment["table2"])
+    assert {r.budget.tag for r in by_experiment["table1"]} == {"spp1024"}
+    assert {r.budget.tag for r in by_experiment["equal_time"]} == {"10s"}
+    assert len({r.budget.tag for r in by_experiment["convergence"]}) > 3
+    run = next(r for r in by_experiment["equal_time"] if r.scene == "veach-ajar" and r.method == "ours")
+    assert plan.render_file(run, "image.exr") == "results/paper/renders/equal_time/veach-ajar/ours/10s/seed0/image.exr"
+    assert "--seconds 10 --exclude-passes 10" in plan.render_args(run)
+    ref = plan.reference_for(run)
+    assert plan.reference_file(ref, "image.exr") == "results/paper/references/veach-ajar/x0.25-spp16384/image.exr"
+    assert len({r.key for r in plan.runs}) == len(plan.runs)
+
+
+def test_ci_config_uses_only_methods_that_exist():
+    plan = harness.plan(ci_config(), check=True)
+    assert plan.warnings == [] and plan.config["strict"] is True
+    assert {r.cli_method for r in plan.runs} == {"brdf"}
+    assert {r.scene for r in plan.runs} == {"cornell", "door-ajar"}
+
+
+def _mutate(path, value):
+    def apply(config):
+        node = config
+        for key in path[:-1]:
+            node = node[key]
+        if value is KeyError:
+            del node[path[-1]]
+        else:
+            node[path[-1]] = value
+    return apply
+
+
+@pytest.mark.parametrize("path, value, message", [
+    (("experiments", "table1", "SS"), [4], "experiments.table1: unknown key 'SS'"),
+    (("experiments", "table1", "S"), [5], "experiments.table1.S[0]: 5 is not one of"),
+    (("variant",), "cuda", "variant: \"cuda\" is not one of"),
+    (("scenes", "cornell", "scal"), 0.1, "scenes.cornell: unknown key 'scal'"),
+    (("budgets", "equal_spp"), {"spp": 16, "seconds": 2}, "budgets.equal_spp: give exactly one of 'spp' and 'seconds'"),
+    (("budgets", "equal_spp", "spp"), 0, "budgets.equal_spp.spp: 0 is less than the minimum of 1"),
+    (("out",), KeyError, "'out' is a required property"),
+    (("experiments", "table3"), {}, "experiments: unknown key 'table3'"),
+    (("experiments", "equal_time", "methods"), ["nope"], "method 'nope' is not declared under 'methods'"),
+    (("experiments", "equal_time", "scenes"), ["kitchen"], "scene 'kitchen' is not declared under 'scenes'"),
+    (("experiments", "equal_time", "budget"), "fast", "budget: 'fast' is not declared under 'budgets'"),
+    (("experiments", "table1", "budget"), "convergence", "only the convergence experiment takes a list"),
+    (("methods", "nope"), {"method": "no-such-method"}, None),
+])
+def test_bad_config_gives_one_message_naming_the_key(path, value, message):
+    config = ci_config()
+    _mutate(path, value)(config)
+    if message is None:  # an unknown command-line method under strict: true
+        config["experiments"]["equal_time"]["methods"] = ["brdf", "nope"]
+        message = "methods: unknown to this checkout: no-such-method"
+    with pytest.raises(harness.ConfigError) as error:
+        harness.plan(config)
+    assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def test_scene_missing_from_the_search_path_is_rejected_when_strict():
+    config = ci_config()
+    config["scenes"]["no-such-scene"] = {"scale": 0.1}
+    config["experiments"]["equal_time"]["scenes"] = ["cornell", "no-such-scene"]
+    with pytest.raises(harness.ConfigError, match="scenes: not on the scene search path: no-such-scene"):
+        harness.plan(copy.deepcopy(config))
+    config["strict"] = False
+    assert any("no-such-scene" in w for w in harness.plan(config).warnings)
+
+
+def test_template_collisions_are_rejected():
+    config = ci_config()
+    config["experiments"]["table1"]["S"] = [4, 8]  # both cells would render (and store) `brdf`
+    with pytest.raises(harness.ConfigError, match="occurs twice"):
+        harness.plan(config)
+
+
+def test_harness_path_command(capsys):
+    assert harness.main(["path", "--configfile", str(CI_CONFIG), "equal_time", "door-ajar", "brdf"]) == 0
+    assert capsys.readouterr().out.strip() == "results/ci/renders/equal_time/door-ajar/brdf/1s/seed0/image.exr"
+    assert harness.main(["path", "--configfile", str(CI_CONFIG), "equal_time", "door-ajar", "ours"]) == 2
+
+
+# ---------------------------------------------------------------------------------- tables (synthetic)
+
+def _row(experiment, scene, method, seed, mae, budget="spp1024", spp=1024, seconds=2.0, **coords):
+    return {"experiment": experiment, "scene": scene, "method": method, "cli_method": method, "label": method.upper(),
+            "seed": seed, "budget": budget, "scale": 0.5, "timed": experiment in ("equal_time", "convergence"),
+            "mae": mae, "mae_hdr": mae * 2, "relmse": mae * 3, "nonfinite_pixels": 0 if mae is not None else 7,
+            "render_seconds": seconds, "stats": {"spp": spp, "seconds": seconds + 0.5, "resolution": [64, 32],
+                                                 "hit_rate": 0.25, "compile_seconds": 0.5},
+            "provenance": {"host": "box", "device": "CPU: test", "variant": "llvm_ad_rgb", "threads": 2},
+            "curve": [{"spp": spp, "render_seconds": seconds, "mae": mae}], **coords}
+
+
+def _spec(plan_config, experiment):
+    return harness.plan(plan_config, check=False).experiment_spec(experiment)
+
+
+def test_table1_layout_mean_over_seeds_and_paper_numbers():
+    config = harness.load_config(FULL_CONFIG)
+    config["experiments"]["table1"].update(S=[8, 4], D=[16, 8])
+    spec = _spec(config, "table1")
+    rows = [_row("table1", "veach-ajar", f"ours-S{S}-D{D}", seed, 0.01 * S + 0.001 * D + 0.002 * seed, S=S, D=D)
+            for S in (8, 4) for D in (16, 8) for seed in (0, 1)]
+    cells, text, runs = tables.build(spec, rows)
+    assert len(runs) == 8 and len(cells) == 4 and {"host", "device", "variant", "threads"} <= set(runs.columns)
+    cell = cells[(cells.S == 8) & (cells.D == 16)].iloc[0]
+    assert cell.mae == pytest.approx(0.08 + 0.016 + 0.001) and cell.seeds == 2
+    assert cell.paper_mae == pytest.approx(0.0347)
+    assert "| S \\ D | 16 | 8 |" in text and "| **8** | 0.097 / 0.0347 |" in text
+    assert "`box`: CPU: test" in text
+
+
+def test_table2_layout_with_extra_methods_and_a_nonfinite_run():
+    config = harness.load_config(FULL_CONFIG)
+    config["experiments"]["table2"].update(rules=["mc", "sarsa"], samplers=["sphere_inv", "hemi_rej_plus"])
+    spec = _spec(config, "table2")
+    rows = [_row("table2", "veach-ajar", f"{r}-{s}", 0, 0.04, rule=r, sampler=s)
+            for r in ("mc", "sarsa") for s in ("sphere_inv", "hemi_rej_plus")]
+    rows[0].update(mae=None, nonfinite_pixels=7)  # NaN/Inf pixels: reported, never averaged away
+    rows += [_row("table2", "veach-ajar", "brdf", 0, 0.06, extra=True),
+             _row("table2", "veach-ajar", "quadtree-grid", 0, 0.05, extra=True)]
+    cells, text, _ = tables.build(spec, rows)
+    assert len(cells) == 6
+    assert "| rule | Sphere Inv | Hemi Rej+ |" in text
+    assert "| **MC** | n/a (7 non-finite px) / 0.0482 | 0.04 / 0.038 |" in text
+    assert "| BRDF | 0.06 / 0.0645 |" in text and "| QUADTREE-GRID | 0.05 / 0.0522 |" in text
+    assert cells.loc[cells.method == "brdf", "paper_mae"].item() == pytest.approx(0.0645)
+
+
+def test_equal_time_and_convergence_tables():
+    config = harness.load_config(FULL_CONFIG)
+    spec = _spec(config, "equal_time")
+    rows = [_row("equal_time", scene, m, 0, 0.02, budget="10s", spp=512)
+            for scene in spec["scenes"] for m in spec["methods"]]
+    rows[-1]["provenance"] = {**rows[-1]["provenance"], "host": "other"}
+    cells, text, _ = tables.build(spec, rows)
+    assert len(cells) == len(spec["scenes"]) * len(spec["methods"])
+    veach = cells[cells.scene == "veach-ajar"].set_index("method")
+    assert veach.loc["ours", "paper_mae"] == pytest.approx(0.0740) and math.isnan(veach.loc["sdtree", "paper_mae"])
+    assert "| scene | BRDF | Quadtree | Ours w/o rejection opt | Ours w/o SARSA | Ours | SD-tree |" in text
+    assert "more than one machine" in text  # a timed experiment split over machines is flagged
+
+    spec = _spec(config, "convergence")
+    rows = [_row("convergence", s, m, 0, 1.0 / spp, budget=f"spp{spp}", spp=spp, seconds=spp / 100)
+            for s in spec["scenes"] for m in spec["methods"] for spp in (32, 64)]
+    cells, text, _ = tables.build(spec, rows)
+    assert len(cells) == len(spec["scenes"]) * len(spec["methods"]) * 2
+    assert "| scene | method | spp32 | spp64 |" in text and "0.03125 @ 0.32 s" in text
+
+
+# --------------------------------------------------------------------------------- figures (synthetic)
+
+def test_auto_crop_finds_the_noisy_region():
+    error = np.zeros((40, 60))
+    error[25:35, 40:50] = 1.0
+    assert figures.crop_box(error.shape, None, [error], fraction=0.25) == (40, 25, 10, 10)
+    assert figures.crop_box((40, 60, 3), [0.5, 0.5, 0.25, 0.25]) == (30, 20, 15, 10)
+
+
+def test_figures_draw_from_synthetic_runs(tmp_path):
+    rng = np.random.default_rng(1)
+    reference = np.full((24, 32, 3), 0.5, np.float32)
+    imageio.write_exr(tmp_path / "ref.exr", reference)
+    entries = []
+    for i, label in enumerate(["BRDF", "Ours"]):
+        image = reference + rng.normal(0, 0.1 / (i + 1), reference.shape).astype(np.float32)
+        imageio.write_exr(tmp_path / f"{i}.exr", image)
+        (tmp_path / f"{i}.json").write_text(json.dumps({"mae": 0.1 / (i + 1)}))
+        entries.append({"label": label, "image": str(tmp_path / f"{i}.exr"), "metrics": str(tmp_path / f"{i}.json")})
+    job = {"title": "t", "crop_fraction": 0.3, "rows": [
+        {"scene": "a", "reference": str(tmp_path / "ref.exr"), "crop": None, "entries": entries},
+        {"scene": "b", "reference": str(tmp_path / "ref.exr"), "crop": [0.1, 0.1, 0.5, 0.5], "entries": entries[:1]}]}
+    figures.comparison(job, tmp_path / "comparison.png")
+
+    metrics = []
+    for method, snapshots in (("brdf", False), ("ours", True)):
+        for spp in (64, 128, 256):
+            row = _row("convergence", "a", method, 0, 1 / spp, budget=f"spp{spp}", spp=spp, seconds=spp / 100)
+            if snapshots:  # per-pass snapshots: one render gives the whole curve
+                row["curve"] = [{"spp": s, "render_seconds": s / 100, "mae": 1 / s} for s in (8, 16, 32, spp)]
+            path = tmp_path / f"m-{method}-{spp}.json"
+            path.write_text(json.dumps(row))
+            metrics.append(str(path))
+    series = figures.convergence_series([json.loads(Path(p).read_text()) for p in metrics])
+    assert [t for t, _ in series["a"]["BRDF"]] == [0.64, 1.28, 2.56]
+    assert len(series["a"]["OURS"]) == 4
+    figures.convergence({"scenes": ["a"]}, metrics, tmp_path / "convergence.png")
+
+    pd.DataFrame([{"scene": "a", "S": s, "D": d, "mae": 0.01 * s / d} for s in (8, 4) for d in (16, 8)]).to_csv(
+        tmp_path / "t1.csv", index=False)
+    figures.heatmap(tmp_path / "t1.csv", tmp_path / "heatmap.png")
+    from PIL import Image
+
+    for name in ("comparison", "convergence", "heatmap"):
+        with Image.open(tmp_path / f"{name}.png") as image:
+            assert image.format == "PNG" and min(image.size) > 100
+
+
+def test_evaluate_reads_snapshots_listed_in_stats(tmp_path):
+    """Forward compatibility with the proposed `--snapshots` render option (docs/harness.md)."""
+    reference = np.full((8, 8, 3), 0.5, np.float32)
+    imageio.write_exr(tmp_path / "ref.exr", reference)
+    imageio.write_exr(tmp_path / "image.exr", reference * 1.1)
+    imageio.write_exr(tmp_path / "image_snap0008.exr", reference * 1.5)
+    passes = [{"spp_total": 8 * (i + 1), "seconds": 0.1, "update_seconds": 0.01, "compile_seconds": 0.05 * (i == 0)}
+              for i in range(2)]
+    (tmp_path / "stats.json").write_text(json.dumps({"spp": 16, "per_pass": passes, "provenance": {"host": "h"},
+                                                     "snapshots": [{"spp": 8, "file": "image_snap0008.exr"}]}))
+    result = harness.evaluate_run(str(tmp_path / "image.exr"), str(tmp_path / "stats.json"),
+                                  str(tmp_path / "ref.exr"), str(tmp_path / "metrics.json"), {"method": "m"})
+    assert [c["spp"] for c in result["curve"]] == [8, 16]
+    assert result["curve"][0]["mae"] > result["curve"][1]["mae"] > 0
+    assert result["curve"][0]["render_seconds"] == pytest.approx(0.06)
+    assert result["render_seconds"] == pytest.approx(0.17)
+    assert json.loads((tmp_path / "metrics.json").read_text())["method"] == "m"
+
+
+# ------------------------------------------------------------------------------- the workflow, end to end
+
+@pytest.fixture(scope="module")
+def ci_run(tmp_path_factory):
+    workdir = tmp_path_factory.mktemp("ci-run")
+    start = time.perf_counter()
+    result = snakemake("--cores", 2, "--configfile", CI_CONFIG, "--directory", workdir)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    return workdir, time.perf_counter() - start
+
+
+def _finite(frame: pd.DataFrame, column: str) -> bool:
+    return bool(np.isfinite(frame[column].astype(float)).all())
+
+
+def test_ci_workflow_runs_end_to_end(ci_run):
+    workdir, seconds = ci_run
+    out = workdir / "results" / "ci"
+    t1 = pd.read_csv(out / "tables" / "table1.csv")
+    assert list(t1[["scene", "S", "D"]].itertuples(index=False, name=None)) == [("cornell", 8, 16)]
+    assert t1.paper_mae.item() == pytest.approx(0.0347)
+    t2 = pd.read_csv(out / "tables" / "table2.csv")
+    assert list(t2[["scene", "rule", "sampler"]].itertuples(index=False, name=None)) == [
+        ("door-ajar", "sarsa", "hemi_rej_plus")]
+    et = pd.read_csv(out / "tables" / "equal_time.csv")
+    assert list(et[["scene", "method"]].itertuples(index=False, name=None)) == [("cornell", "brdf"),
+                                                                               ("door-ajar", "brdf")]
+    assert (et.spp > 16).all()  # a 1 s budget reaches more samples than the 16 spp of the equal-spp runs
+    conv = pd.read_csv(out / "tables" / "convergence.csv")
+    assert list(conv.budget) == ["spp8", "spp16"]
+    for frame in (t1, t2, et, conv):
+        assert _finite(frame, "mae") and _finite(frame, "relmse") and (frame.mae > 0).all()
+        assert (frame.nonfinite_pixels == 0).all()
+    for experiment in ("table1", "table2", "equal_time", "convergence"):
+        runs = pd.read_csv(out / "tables" / f"{experiment}_runs.csv")
+        assert runs.host.notna().all() and runs.device.str.len().gt(0).all() and (runs.variant == "llvm_ad_rgb").all()
+        assert (out / "tables" / f"{experiment}.md").read_text().startswith("# ")
+    timed = pd.read_csv(out / "tables" / "equal_time_runs.csv")
+    assert (timed.threads == 2).all()  # a timed render took every core given (--cores 2)
+    assert (pd.read_csv(out / "tables" / "table1_runs.csv").threads == 1).all()
+    assert "| **cornell** |" in (out / "tables" / "equal_time.md").read_text()
+    for name in ("table1_heatmap", "equal_time_comparison", "convergence"):
+        assert (out / "figures" / f"{name}.png").stat().st_size > 1000
+    prov = json.loads((out / "provenance.json").read_text())
+    assert prov["config"]["out"] == "results/ci" and prov["versions"]["mitsuba"]
+    assert {r["experiment"] for r in prov["renders"]} == {"table1", "table2", "equal_time", "convergence",
+                                                          "reference"}
+    assert seconds < 150
+
+
+def test_second_run_has_nothing_to_do(ci_run):
+    workdir, _ = ci_run
+    result = snakemake("-n", "--configfile", CI_CONFIG, "--directory", workdir)
+    assert result.returncode == 0 and "Nothing to be done" in result.stdout + result.stderr
+
+
+def test_single_run_rerun_redoes_that_render_and_what_depends_on_it(ci_run):
+    workdir, _ = ci_run
+    target = "results/ci/renders/equal_time/door-ajar/brdf/1s/seed0/image.exr"
+    result = snakemake("-n", "--configfile", CI_CONFIG, "--directory", workdir, "--forcerun", target)
+    assert result.returncode == 0, result.stderr[-2000:]
+    counts = job_counts(result.stdout)
+    assert counts["render_timed"] == 1 and counts["evaluate"] == 1 and "render" not in counts
+    assert counts["table"] == 1 and "reference" not in counts
+
+
+def test_report_with_provenance(ci_run):
+    workdir, _ = ci_run
+    report = workdir / "report.html"
+    result = snakemake("--configfile", CI_CONFIG, "--directory", workdir, "--report", report)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert report.stat().st_size > 10000 and "provenance.html" in result.stdout + result.stderr
+
+
+def test_bad_config_is_rejected_before_any_job(tmp_path):
+    config = ci_config()
+    config["experiments"]["table1"]["S"] = [5]
+    import yaml
+
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(config))
+    result = snakemake("--cores", 1, "--configfile", tmp_path / "bad.yaml", "--directory", tmp_path / "work")
+    assert result.returncode != 0
+    errors = [line for line in result.stderr.splitlines() if "config error" in line]
+    assert len(errors) == 1 and "experiments.table1.S[0]: 5 is not one of" in errors[0]
+    assert not (tmp_path / "work" / "results").exists()
+
+
+def test_full_config_and_slurm_profile_dry_run(tmp_path):
+    result = snakemake("-n", "--directory", tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    plan = harness.plan(harness.load_config(FULL_CONFIG), check=False)
+    counts = job_counts(result.stdout)
+    assert counts["render"] == sum(not r.timed for r in plan.runs) > 0
+    assert counts["render_timed"] == sum(r.timed for r in plan.runs) > 0
+    assert counts["evaluate"] == len(plan.runs) and counts["reference"] == len(plan.references)
+    assert counts["table"] == len(plan.experiments()) and counts["figure_heatmap"] == 1
+    # The SLURM profile: resources and config overrides resolve (the executor plugin itself is not installed here).
+    result = snakemake("-n", "--profile", ROOT / "config" / "profiles" / "slurm", "--executor", "local",
+                       "--directory", tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "--variant cuda_ad_rgb" in result.stdout and "gpu=1" in result.stdout and "--exclusive" in result.stdout
+
+
+def test_lint_runs_and_only_asks_for_software_environments(tmp_path):
+    """`snakemake --lint`: the one lint left is the request for a conda environment or container per rule (the
+    software is this package, installed by scripts/setup.sh)."""
+    import re
+
+    result = snakemake("--lint", "--directory", tmp_path)
+    titles = set(re.findall(r"^    \* (.*):$", result.stdout + result.stderr, flags=re.MULTILINE))
+    assert titles == {"Specify a conda environment or container for each rule."}, titles
+
+
+def _render_processes(group: int) -> list[int]:
+    """Pids of `python -m guiding render` processes in process group ``group`` (started by this test)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            args = (entry / "cmdline").read_bytes().split(b"\0")
+            if os.getpgid(int(entry.name)) == group and b"guiding" in args and b"render" in args:
+                found.append(int(entry.name))
+        except (OSError, ProcessLookupError):
+            continue
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to find the render process")
+@pytest.mark.parametrize("victim", ["render", "workflow"])
+def test_interrupted_render_leaves_no_output_a_rerun_would_trust(tmp_path, victim):
+    """Kill a long timed render mid-way: only the render (Snakemake sees the failure and deletes the job's
+    outputs) or the whole workflow at once (nobody cleans up: the CLI's atomic writes and Snakemake's
+    incomplete-job markers must keep the rerun from trusting anything)."""
+    import yaml
+
+    config = ci_config()
+    config["budgets"]["equal_time"]["seconds"] = 120
+    (tmp_path / "long.yaml").write_text(yaml.safe_dump(config))
+    folder = tmp_path / "results/ci/renders/equal_time/cornell/brdf/120s/seed0"
+    target = "results/ci/renders/equal_time/cornell/brdf/120s/seed0/stats.json"
+    args = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "--cores", "1", "--configfile",
+            str(tmp_path / "long.yaml"), "--directory", str(tmp_path), target]
+    process = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                               start_new_session=True)
+    try:
+        deadline = time.time() + 60
+        while not (pids := _render_processes(process.pid)) and time.time() < deadline:
+            time.sleep(0.2)
+        assert pids, "the render never started"
+        time.sleep(2.0)  # well inside the render (Dr.Jit started, passes running)
+        if victim == "render":
+            os.kill(pids[0], signal.SIGKILL)
+            output, _ = process.communicate(timeout=60)
+            assert process.returncode != 0 and b"Error in rule render_timed" in output
+        else:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait(timeout=30)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    for name in ("image.exr", "stats.json", "preview.png"):
+        assert not (folder / name).exists()
+    plan = snakemake("-n", "--configfile", tmp_path / "long.yaml", "--directory", tmp_path, target)
+    text = plan.stdout + plan.stderr
+    assert ("rule render_timed" in text and "Missing output files" in text) or "IncompleteFilesException" in text
