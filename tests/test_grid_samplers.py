@@ -42,6 +42,9 @@ def _trained_guide(sampler: str, D: int, table: str, normal) -> GridGuide:
     return guide
 
 
+#: Number of chi-square tests in this file: the significance level is Šidák-corrected for them, as Mitsuba does.
+TEST_COUNT = len(SAMPLERS) * 2 * 2 * 2
+
 #: A normal at a normal-bin centre but off the axes (the memoised N is exact there), and an axis normal.
 NORMALS = {"oblique": None, "axis": (0.0, 0.0, 1.0)}
 
@@ -73,4 +76,4 @@ def test_sampler_pdf_matches_samples(sampler, D, table, normal_name):
 
     test = ChiSquareTest(domain=SphericalDomain(), sample_func=sample_func, pdf_func=pdf_func, sample_dim=2,
                          sample_count=400_000, res=64, ires=32)
-    assert test.run(), test.messages
+    assert test.run(test_count=TEST_COUNT), test.messages
