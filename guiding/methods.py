@@ -24,8 +24,18 @@ GRID_METHODS = {
 }
 _OVERRIDES = re.compile(r"^(?P<base>.+?)(?:-S(?P<S>\d+))?(?:-D(?P<D>\d+))?$")
 
+def _sdtree(cls_name: str) -> Callable[[], Guide]:
+    def build() -> Guide:
+        from .guides import sdtree
+
+        return getattr(sdtree, cls_name)()
+    return build
+
+
 _FACTORIES: dict[str, Callable[[], Guide]] = {
     "brdf": BSDFGuide,
+    "sdtree": _sdtree("SDTreeGuide"),
+    "quadtree-grid": _sdtree("QuadtreeGridGuide"),
 }
 
 

@@ -1,6 +1,8 @@
 """The progressive renderer: passes of a few spp, each with its own seed, until an spp or a time budget is spent.
 
-Every pass is accumulated into the final image (training passes included, as in the paper). After each pass the
+Every pass is accumulated into the final image (training passes included, as in the paper), except for guides
+whose update reports ``iteration_done`` (the SD-tree's doubling schedule): the image then restarts, so it holds
+the last iteration alone, as Müller et al. do. After each pass the
 device is synchronised, the pass is timed, and the guide updates its distributions. Pass-varying values (the seed)
 reach the kernel as parameters, so the same compiled kernel serves every pass; ``kernels_compiled`` in the per-pass
 statistics shows it.
@@ -74,6 +76,7 @@ class RenderResult:
     image: np.ndarray        # (H, W, 3) float32, the mean over all passes
     passes: list[PassStats]
     budget: Budget
+    spp_in_image: int        # samples per pixel the image averages (fewer than `spp` when iterations restart it)
 
     @property
     def spp(self) -> int:
@@ -92,7 +95,7 @@ class RenderResult:
         return float(np.average([p.hit_rate for p in self.passes], weights=[p.spp for p in self.passes]))
 
     def summary(self) -> dict:
-        return {"spp": self.spp, "seconds": self.seconds, "compile_seconds": self.compile_seconds,
+        return {"spp": self.spp, "spp_in_image": self.spp_in_image, "seconds": self.seconds, "compile_seconds": self.compile_seconds,
                 "budget_seconds_counted": self.counted_seconds(), "passes": len(self.passes),
                 "hit_rate": self.hit_rate, "budget": asdict(self.budget)}
 
@@ -155,12 +158,15 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
     guide = getattr(integrator, "guide", None)
     if guide is not None:
         guide.prepare(scene)
+        if hasattr(guide, "set_budget"):
+            guide.set_budget(budget.spp)
     counters = hasattr(integrator, "reset_counters")
 
     accumulated = None
     passes: list[PassStats] = []
     display = _Progress(budget, progress)
     spp_total, counted = 0, 0.0
+    spp_in_image = 0
     try:
         with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
             dr.kernel_history()  # discard what ran before this render
@@ -182,7 +188,8 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
                 image = mi.render(scene, integrator=integrator, spp=spp, seed=pass_seed(seed, index),
                                   sensor=sensor)
                 weighted = mi.TensorXd(image) * spp
-                accumulated = weighted if accumulated is None else accumulated + weighted
+                accumulated = weighted if accumulated is None or spp_in_image == 0 else accumulated + weighted
+                spp_in_image += spp
                 dr.eval(accumulated)
                 dr.sync_thread()
                 seconds = time.perf_counter() - start
@@ -202,8 +209,10 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
                 if index >= budget.exclude_passes:
                     counted += passes[-1].counted_seconds
                 display.show(spp_total, counted)
+                if guide_stats.get("iteration_done") and not (budget.spp is not None and spp_total >= budget.spp):
+                    spp_in_image = 0  # the next iteration starts the image afresh
     finally:
         display.close()
 
-    image = (accumulated / spp_total).numpy().astype(np.float32)[..., :3]
-    return RenderResult(image, passes, budget)
+    image = (accumulated / spp_in_image).numpy().astype(np.float32)[..., :3]
+    return RenderResult(image, passes, budget, spp_in_image)

@@ -37,7 +37,8 @@ not delta-sampled, the leaf slot of that direction in the recording D-tree and i
 kernel (started by :meth:`update`, once the render kernel has run: Dr.Jit would otherwise have to evaluate the
 buffers in the middle of the render) walks every path backwards, ``L ← Le_i + w_i·L``, and adds
 ``mean_rgb(L_{i+1}) / pdf_i`` (the incident radiance along the sampled direction over its pdf) to the leaf, and
-one to the vertex count of the vertex's D-tree (S-tree leaf).
+one to the vertex count of the vertex's D-tree (S-tree leaf). The buffers take 32 bytes per (path, vertex):
+``pixels × pass_spp × max_depth × 32`` bytes per pass (314 MB at 320 × 240, 8 spp, depth 16).
 """
 
 from __future__ import annotations
@@ -307,6 +308,16 @@ def _pad(a: np.ndarray, minimum: int = 2) -> np.ndarray:
     return a if len(a) >= minimum else np.concatenate([a, np.zeros(minimum - len(a), dtype=a.dtype)])
 
 
+def _prev_float(x):
+    """The largest float below ``x`` (``x`` > 0)."""
+    return mi.Point2f(dr.reinterpret_array(mi.Float, dr.reinterpret_array(mi.UInt32, x.x) - 1),
+                      dr.reinterpret_array(mi.Float, dr.reinterpret_array(mi.UInt32, x.y) - 1))
+
+
+def _capacity(n: int) -> int:
+    return 1 << max(int(n) - 1, 1).bit_length()
+
+
 class DeviceForest:
     """A :class:`Forest` uploaded for sampling, density evaluation and leaf lookup inside kernels."""
 
@@ -360,8 +371,9 @@ class DeviceForest:
             q = dr.select(right, mi.UInt32(1), mi.UInt32(0)) + dr.select(up, mi.UInt32(2), mi.UInt32(0))
             node = dr.gather(mi.UInt32, child, base + q, go)
             go &= node != 0
-        uv = mi.Point2f(dr.clip(origin.x + size * s.x, 0, ONE_MINUS_EPS),
-                        dr.clip(origin.y + size * s.y, 0, ONE_MINUS_EPS))
+        # A leaf of side 2^-20 spans only a few dozen floats: keep the rounded point inside the leaf it came from.
+        upper = _prev_float(origin + size)
+        uv = mi.Point2f(dr.minimum(origin.x + size * s.x, upper.x), dr.minimum(origin.y + size * s.y, upper.y))
         return uv, pdf
 
     @dr.syntax
@@ -534,8 +546,8 @@ def _vertex_log_type():
     if key not in _STATE_TYPES:
         @dataclass
         class VertexLog:
-            path: mi.UInt32
-            n: mi.UInt32
+            path: mi.UInt32 = None
+            n: mi.UInt32 = None
             DRJIT_STRUCT = {"path": mi.UInt32, "n": mi.UInt32}
 
         _STATE_TYPES[key] = VertexLog
@@ -620,11 +632,13 @@ class _TreeGuide(Guide):
         use_bsdf = s1 < frac
         bs, bsdf_weight = bsdf.sample(bsdf_ctx, si, dr.minimum(s1 / frac, ONE_MINUS_EPS), s2, active & use_bsdf)
         use_tree = guided & ~use_bsdf
-        d_tree, _ = self._sampling.sample_dir(tree, s2, use_tree)
+        d_tree, p_tree_sampled = self._sampling.sample_dir(tree, s2, use_tree)
         wo_world = dr.select(use_tree, d_tree, si.to_world(bs.wo))
         wo = si.to_local(wo_world)
         value, p_bsdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
-        p_tree = self._sampling.pdf_dir(tree, wo_world, guided)
+        # The D-tree density of a direction it drew is the one its descent found: looking the (rounded) direction
+        # up again could land in a neighbouring leaf of side ~1e-6 with a very different density.
+        p_tree = dr.select(use_tree, p_tree_sampled, self._sampling.pdf_dir(tree, wo_world, guided & use_bsdf))
         p_mix = self.bsdf_fraction * p_bsdf + (1 - self.bsdf_fraction) * p_tree
         mix_weight = dr.select(p_mix > 0, value / p_mix, 0)
 
@@ -657,8 +671,10 @@ class _TreeGuide(Guide):
 
     # ---------------------------------------------------------------------------------------- host side
     def _reset_accumulators(self) -> None:
-        self._energy_acc = dr.zeros(mi.Float, max(4 * self._recording.n_nodes, 2))
-        self._count_acc = dr.zeros(mi.Float, max(self._recording.n_trees, 2))
+        # Capacities rounded up to powers of two: the splat kernel's atomics depend on the target size, so this
+        # keeps it from being recompiled whenever the trees change a little.
+        self._energy_acc = dr.zeros(mi.Float, _capacity(4 * self._recording.n_nodes))
+        self._count_acc = dr.zeros(mi.Float, _capacity(self._recording.n_trees))
         dr.eval(self._energy_acc, self._count_acc)
 
     @dr.syntax
@@ -716,8 +732,8 @@ class SDTreeGuide(_TreeGuide):
 
     Parameters: ``c`` (S-tree split constant, 12000), ``rho`` (D-tree subdivision share, 0.01),
     ``dtree_max_depth`` (20), ``bsdf_fraction`` (0.5), ``max_nodes`` (cap on the nodes of one D-tree; none),
-    ``base_spp`` (spp of iteration 0; iteration ``k`` spans
-    ``base_spp·2^k`` spp), ``budget_spp`` (optional: lets the last iteration run to the end of the budget and stop learning there).
+    ``base_spp`` (spp of iteration 0, 8 = one default pass; iteration ``k`` spans ``base_spp·2^k`` spp),
+    ``budget_spp`` (optional: the last iteration then runs to the end of the budget and records nothing).
 
     S-tree threshold: a leaf splits when the vertices recorded in it during iteration ``k`` exceed
     ``c·sqrt(spp_k)``, ``spp_k = base_spp·2^k`` the spp of that iteration. This is the paper's ``c·sqrt(2^k)``
@@ -787,9 +803,12 @@ class SDTreeGuide(_TreeGuide):
         return stree_locate(self._s_device, p, active)
 
     def update(self, spp_done: int) -> dict:
+        """Splat the pass's records; at the end of an iteration, refine. ``iteration`` in the returned statistics
+        is the iteration the pass belonged to; ``iteration_done`` marks the pass that ended it (the distributions
+        change after it; a renderer keeping only the last iteration restarts its accumulation there)."""
+        pass_iteration = self.iteration
         splat_seconds = self._splat_logs() if self.learns else 0.0
-        stats = {"iteration": self.iteration, "iteration_done": False, "splat_seconds": splat_seconds,
-                 "refine_seconds": 0.0}
+        stats = {"iteration_done": False, "splat_seconds": splat_seconds, "refine_seconds": 0.0}
         if self.learns and not self.is_final_iteration and spp_done >= self.iteration_end_spp:
             stats.update(self._refine())
             stats["iteration_done"] = True
@@ -798,6 +817,7 @@ class SDTreeGuide(_TreeGuide):
             if self.is_final_iteration and self.budget_spp is not None:
                 self.learns = False   # Müller: the last iteration does not record
         stats.update(self._structure_stats())
+        stats["iteration"] = pass_iteration
         return stats
 
     def _refine(self) -> dict:
@@ -823,9 +843,10 @@ class SDTreeGuide(_TreeGuide):
         return dict(self._last_refine)
 
     def _structure_stats(self) -> dict:
-        stats = {"stree_nodes": self.stree.n_nodes, "stree_leaves": self.stree.n_leaves,
-                 "memory_bytes": self._memory_bytes(), "iteration_start_spp": self.iteration_start_spp,
-                 "iteration_end_spp": self.iteration_end_spp, "final_iteration": self.is_final_iteration}
+        stats = {"iteration": self.iteration, "stree_nodes": self.stree.n_nodes, "stree_leaves": self.stree.n_leaves,
+                 "memory_bytes": self._memory_bytes() + 16 * self.stree.n_nodes,
+                 "iteration_start_spp": self.iteration_start_spp, "iteration_end_spp": self.iteration_end_spp,
+                 "final_iteration": self.is_final_iteration}
         stats.update(self._forest_stats(self._sampling_host, "dtree"))
         stats.update(self._forest_stats(self._recording_host, "dtree_recording"))
         return stats
@@ -869,7 +890,8 @@ class QuadtreeGridGuide(_TreeGuide):
 
     def _locate(self, p, active):
         S = self.S
-        rel = (p - mi.Point3f(*self._bbox_min)) * mi.Vector3f(*self._inv_extent)
+        lo, inv = [float(x) for x in self._bbox_min], [float(x) for x in self._inv_extent]
+        rel = (p - mi.Point3f(*lo)) * mi.Vector3f(*inv)
         cell = mi.Vector3u(dr.clip(mi.Vector3i(dr.floor(rel * S)), 0, S - 1))
         return (cell.z * S + cell.y) * S + cell.x
 
