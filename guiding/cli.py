@@ -95,7 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo = commands.add_parser("demo", help="the main job: reference, then each method at equal spp, then MAE")
     demo.add_argument("--scene", default="door-ajar")
     demo.add_argument("--scale", type=_positive_float, default=0.5)
-    demo.add_argument("--methods", default="brdf", help="comma-separated method names")
+    demo.add_argument("--methods", default="brdf,ours", help="comma-separated method names (default brdf,ours)")
     demo.add_argument("--spp", type=_positive_int, default=256, help="spp of each method (default 256)")
     demo.add_argument("--reference-spp", type=_positive_int, default=4096)
     demo.add_argument("--out", default="results/demo")
