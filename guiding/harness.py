@@ -355,24 +355,24 @@ def _method_entries(config: dict, experiment: str) -> list[tuple[str, str, str, 
                               f"(declared: {', '.join(methods)})")
         return name, methods[name].get("method", name), methods[name].get("label", name), ()
 
+    def fill(**fields) -> str:
+        try:
+            return spec["method"].format(**fields)
+        except (KeyError, IndexError, ValueError):
+            names = ", ".join("{" + f + "}" for f in fields)
+            raise ConfigError(f"experiments.{experiment}.method: bad template {spec['method']!r} "
+                              f"(fields: {names})") from None
+
     if experiment == "table1":
         entries = []
         for S, D in itertools.product(spec["S"], spec["D"]):
-            try:
-                name = spec["method"].format(S=S, D=D)
-            except (KeyError, IndexError, ValueError):
-                raise ConfigError(f"experiments.table1.method: bad template {spec['method']!r} (fields: {{S}}, {{D}})")\
-                    from None
+            name = fill(S=S, D=D)
             entries.append((name, name, f"S{S} D{D}", (("S", S), ("D", D))))
         return entries
     if experiment == "table2":
         entries = []
         for rule, sampler in itertools.product(spec["rules"], spec["samplers"]):
-            try:
-                name = spec["method"].format(rule=rule, sampler=sampler)
-            except (KeyError, IndexError, ValueError):
-                raise ConfigError(f"experiments.table2.method: bad template {spec['method']!r} "
-                                  "(fields: {rule}, {sampler})") from None
+            name = fill(rule=rule, sampler=sampler)
             label = f"{RULE_LABELS[rule]} {SAMPLER_LABELS[sampler]}"
             entries.append((name, name, label, (("rule", rule), ("sampler", sampler))))
         for name in spec.get("extra_methods", []):

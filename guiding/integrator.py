@@ -14,7 +14,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .guides import BSDFGuide, Guide
+from .guides import Guide
 
 
 class GuidedPathIntegrator(mi.SamplingIntegrator):

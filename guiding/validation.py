@@ -3,11 +3,16 @@ tolerance derived from their measured variance."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 import mitsuba as mi
 
 from .render import pass_seed
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 #: Allowed difference in standard errors. With three channels, an unbiased pair fails with probability < 1e-3.
 Z_LIMIT = 4.0
@@ -38,7 +43,7 @@ def z_scores(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def unbiasedness_table(scene_name: str = "door-ajar", scale: float = 0.1, passes: int = 24, spp: int = 32,
-                       methods: list[str] | None = None) -> "pd.DataFrame":
+                       methods: list[str] | None = None) -> pd.DataFrame:
     """Image mean of each grid method against Mitsuba's ``path`` integrator, with z-scores and relative bias."""
     import pandas as pd
 
@@ -64,7 +69,7 @@ def unbiasedness_table(scene_name: str = "door-ajar", scale: float = 0.1, passes
 
 
 def learning_table(scene_name: str = "door-ajar", scale: float = 0.25, spp: int = 256, reference_spp: int = 4096,
-                   methods: tuple[str, ...] = ("brdf", "ours", "ours-no-rejopt", "ours-expected")) -> "pd.DataFrame":
+                   methods: tuple[str, ...] = ("brdf", "ours", "ours-no-rejopt", "ours-expected")) -> pd.DataFrame:
     """MAE, relMSE, hit rate and time of each method at equal spp against a `path` reference."""
     import pandas as pd
 

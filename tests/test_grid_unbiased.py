@@ -36,7 +36,7 @@ def test_grid_methods_agree_with_path_reference(door, reference, method):
     assert (z < Z_LIMIT).all(), f"{method}: z-scores {z}, means {means.mean(0)} vs {reference.mean(0)}"
 
 
-def test_ours_learns(door):
+def test_ours_learns():
     """At equal spp, `ours` finds the light more often and has a lower error than BSDF sampling."""
     from guiding.metrics import mae_tonemapped
     from guiding.render import Budget, render

@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-import mitsuba as mi
 
 from guiding.errors import GuidingError
 from guiding.integrator import GuidedPathIntegrator

@@ -62,6 +62,22 @@ class _Vertex:
     mix: float | mi.Float = 0.0   # ε_r
 
 
+def _invert_cdf(cdf: mi.Float, row: mi.UInt32, size: int, u: mi.Float, active: mi.Bool) -> mi.UInt32:
+    """The first k in [0, size) with ``cdf[row + k] > u`` (binary search over one row of inclusive CDFs)."""
+    return dr.binary_search(0, size - 1, lambda i: dr.gather(mi.Float, cdf, row + i, active) <= u)
+
+
+def _uniform_on_side(sampler: mi.Sampler, side: mi.Float, active: mi.Bool) -> mi.Vector3f:
+    """A uniform local direction on the hemisphere ``side``."""
+    wo = mi.warp.square_to_uniform_hemisphere(sampler.next_2d(active))
+    return mi.Vector3f(wo.x, wo.y, wo.z * side)
+
+
+def _arrival_side(si: mi.SurfaceInteraction3f) -> mi.Float:
+    """+1 or −1: the side of the surface the path arrived on, where guided directions must leave."""
+    return dr.select(si.wi.z < 0, -1.0, 1.0)
+
+
 def _guidable(bsdf: mi.BSDFPtr) -> mi.Bool:
     """Purely diffuse reflection: the BSDFs the paper guides (glossy, delta and transmissive lobes are not)."""
     flags = bsdf.flags()
@@ -173,8 +189,7 @@ class GridGuide(Guide):
     def _vertex(self, si, bsdf, active, mark_visited=True) -> "_Vertex":
         """What every sampler needs to know about a vertex; decides which lanes are guided."""
         table = self.record_table
-        vertex = _Vertex(guided=active & _guidable(bsdf), cell=table.cell(si.p),
-                         side=dr.select(si.wi.z < 0, -1.0, 1.0))  # guided directions leave on the arrival side
+        vertex = _Vertex(guided=active & _guidable(bsdf), cell=table.cell(si.p), side=_arrival_side(si))
         if table.needs_pairs:
             vertex.pair = table.pair(vertex.cell, si.sh_frame.n * vertex.side)
             if mark_visited:
@@ -198,9 +213,7 @@ class GridGuide(Guide):
         guided = vertex.guided
         if self.sampler == "sphere_inv":
             value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
-            policy = dr.gather(mi.Float, table.policy, vertex.cell * table.bins.count
-                               + table.bins.index(si.to_world(wo)), guided)
-            guide_pdf = policy / table.bins.solid_angle
+            guide_pdf = table.policy_at(vertex.cell, si.to_world(wo), guided) / table.bins.solid_angle
             return value, self.bsdf_fraction * bsdf_pdf + (1 - self.bsdf_fraction) * guide_pdf
         value = bsdf.eval(bsdf_ctx, si, wo, guided)
         if self.sampler == "hemi_inv":
@@ -217,9 +230,7 @@ class GridGuide(Guide):
 
     def _target(self, si, vertex, wo) -> mi.Float:
         """The rejection samplers' unnormalised density ``g = (1 − ε_r)·P(ω)·|cos| + ε_r·ū``."""
-        table = self.record_table
-        policy = dr.gather(mi.Float, table.policy, vertex.cell * table.bins.count + table.bins.index(si.to_world(wo)),
-                           vertex.guided)
+        policy = self.record_table.policy_at(vertex.cell, si.to_world(wo), vertex.guided)
         return (1 - vertex.mix) * policy * dr.abs(wo.z) + vertex.mix * vertex.mean
 
     def _sample_sphere(self, sampler, si, vertex, bsdf_wo) -> mi.Vector3f:
@@ -227,18 +238,14 @@ class GridGuide(Guide):
         table = self.record_table
         B = table.bins.count
         use_guide = vertex.guided & (sampler.next_1d(vertex.guided) >= self.bsdf_fraction)
-        u = sampler.next_1d(use_guide)
-        base = vertex.cell * B
-        k = dr.binary_search(0, B - 1, lambda i: dr.gather(mi.Float, table.cdf, base + i, use_guide) <= u)
+        k = _invert_cdf(table.cdf, vertex.cell * B, B, sampler.next_1d(use_guide), use_guide)
         wo_guide = si.to_local(table.bins.direction(k, sampler.next_2d(use_guide)))
         return dr.select(use_guide, wo_guide, bsdf_wo)
 
     def _sample_hemi_inv(self, sampler, si, vertex) -> mi.Vector3f:
         table = self.record_table
-        row = vertex.pair * table.bins.count
-        u = sampler.next_1d(vertex.guided)
-        k = dr.binary_search(0, table.bins.count - 1,
-                             lambda i: dr.gather(mi.Float, table.hemi_cdf, row + i, vertex.guided) <= u)
+        B = table.bins.count
+        k = _invert_cdf(table.hemi_cdf, vertex.pair * B, B, sampler.next_1d(vertex.guided), vertex.guided)
         return si.to_local(table.bins.direction(k, sampler.next_2d(vertex.guided)))
 
     @dr.syntax
@@ -248,8 +255,7 @@ class GridGuide(Guide):
         accepted = mi.Bool(False)
         searching = mi.Bool(vertex.guided)
         while dr.hint(searching, label="Rejection sampling", max_iterations=-1):
-            candidate = mi.warp.square_to_uniform_hemisphere(sampler.next_2d(searching))
-            candidate.z *= vertex.side
+            candidate = _uniform_on_side(sampler, vertex.side, searching)
             proposals += 1
             if sampler.next_1d(searching) * vertex.bound < self._target(si, vertex, candidate):
                 accepted = mi.Bool(True)
@@ -258,8 +264,7 @@ class GridGuide(Guide):
 
         # Paths that exhausted the cap take a fresh uniform direction (not the last, rejected, proposal).
         fallback = vertex.guided & ~accepted
-        uniform = mi.warp.square_to_uniform_hemisphere(sampler.next_2d(fallback))
-        uniform.z *= vertex.side
+        uniform = _uniform_on_side(sampler, vertex.side, fallback)
         self._count("proposals", proposals, vertex.guided)
         self._count("rejection_samples", 1, vertex.guided)
         self._count("accepted", 1, vertex.guided & accepted)
@@ -290,7 +295,7 @@ class GridGuide(Guide):
         onward = dr.mean(weight) * dr.gather(mi.Float, table.q, here, continues)  # one-sample ∫ f·Q·cos
         if self.rule == "expected_sarsa":
             bsdf = si.bsdf()
-            pair = table.pair(table.cell(si.p), si.sh_frame.n * dr.select(si.wi.z < 0, -1.0, 1.0))
+            pair = table.pair(table.cell(si.p), si.sh_frame.n * _arrival_side(si))
             known = active & si.is_valid() & _guidable(bsdf) & (dr.gather(mi.Float, table.norm, pair, active) > 0)
             albedo = dr.mean(bsdf.eval_diffuse_reflectance(si, known))
             expected = albedo / dr.pi * dr.gather(mi.Float, table.value, pair, known)

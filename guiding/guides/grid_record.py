@@ -118,6 +118,10 @@ class RadianceRecord:
         """Flat (cell, bin) index of position ``p`` and world direction ``d``."""
         return self.cell(p) * self.bins.count + self.bins.index(d)
 
+    def policy_at(self, cell: mi.UInt32, d: mi.Vector3f, active: mi.Bool = True) -> mi.Float:
+        """P of world direction ``d``'s bin in ``cell``."""
+        return dr.gather(mi.Float, self.policy, cell * self.bins.count + self.bins.index(d), active)
+
     def pair(self, cell: mi.UInt32, n: mi.Vector3f) -> mi.UInt32:
         """Flat (cell, normal bin) index of a cell and a unit normal."""
         return cell * self.normal_bins.count + self.normal_bins.index(n)
