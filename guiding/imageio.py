@@ -25,6 +25,7 @@ def atomic_path(path: str | os.PathLike):
     os.close(fd)
     try:
         yield tmp
+        os.chmod(tmp, 0o644)  # an ordinary file (mkstemp's 0600 would hide results from other users)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
