@@ -15,12 +15,14 @@ class UnknownMethod(GuidingError):
 
 
 #: The paper's configurations (S = 8, D = 16). Every ``{rule}-{sampler}`` pair is a method too, and any grid
-#: method takes resolution overrides as a suffix: ``ours-S4-D32``, ``mc-hemi_inv-S16``.
+#: method takes resolution overrides as a suffix: ``ours-S4-D32``, ``mc-hemi_inv-S16``. ``ours-uniform-proposals`` is
+#: ``ours`` with the paper's rejection loop (same density, about five times the proposals; see GridGuide).
 GRID_METHODS = {
-    "ours": ("sarsa", "hemi_rej_plus"),
-    "ours-no-rejopt": ("sarsa", "hemi_rej"),
-    "ours-expected": ("expected_sarsa", "hemi_rej_plus"),
-    **{f"{rule}-{sampler}": (rule, sampler) for rule in RULES for sampler in SAMPLERS},
+    "ours": {"rule": "sarsa", "sampler": "hemi_rej_plus"},
+    "ours-uniform-proposals": {"rule": "sarsa", "sampler": "hemi_rej_plus", "proposal": "uniform"},
+    "ours-no-rejopt": {"rule": "sarsa", "sampler": "hemi_rej"},
+    "ours-expected": {"rule": "expected_sarsa", "sampler": "hemi_rej_plus"},
+    **{f"{rule}-{sampler}": {"rule": rule, "sampler": sampler} for rule in RULES for sampler in SAMPLERS},
 }
 _OVERRIDES = re.compile(r"^(?P<base>.+?)(?:-S(?P<S>\d+))?(?:-D(?P<D>\d+))?$")
 
@@ -48,11 +50,10 @@ def grid_parameters(name: str) -> dict | None:
     match = _OVERRIDES.match(name)
     if not match or match["base"] not in GRID_METHODS:
         return None
-    rule, sampler = GRID_METHODS[match["base"]]
     S, D = int(match["S"] or 8), int(match["D"] or 16)
     if not (1 <= S <= 256 and 1 <= D <= 256):
         raise UnknownMethod(f"method '{name}': S and D must be in 1..256")
-    return {"spatial_resolution": S, "directional_resolution": D, "rule": rule, "sampler": sampler, "name": name}
+    return {"spatial_resolution": S, "directional_resolution": D, **GRID_METHODS[match["base"]], "name": name}
 
 
 def check_method(name: str) -> None:

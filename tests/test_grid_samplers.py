@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from mitsuba.chi2 import ChiSquareTest, SphericalDomain
 
-from guiding.guides import SAMPLERS
+from guiding.guides import PROPOSALS, SAMPLERS
 from guiding.guides.grid import GridGuide
 
 
@@ -20,9 +20,10 @@ def _vertex_setup(guide: GridGuide, normal, size: int):
     return si
 
 
-def _trained_guide(sampler: str, D: int, table: str, normal) -> GridGuide:
+def _trained_guide(sampler: str, proposal: str, D: int, table: str, normal) -> GridGuide:
     """A guide whose Q in cell 0 is random: ``peaked`` (a few bright bins) or ``flat`` (within 10 %)."""
-    guide = GridGuide(spatial_resolution=2, directional_resolution=D, rule="sarsa", sampler=sampler)
+    guide = GridGuide(spatial_resolution=2, directional_resolution=D, rule="sarsa", sampler=sampler,
+                      proposal=proposal)
     record = guide.record_table
     record.set_bounds(mi.BoundingBox3f(mi.ScalarPoint3f(0), mi.ScalarPoint3f(1)))
     rng = np.random.default_rng(D + len(table) + SAMPLERS.index(sampler))
@@ -42,22 +43,26 @@ def _trained_guide(sampler: str, D: int, table: str, normal) -> GridGuide:
     return guide
 
 
+#: Samplers with each proposal they take (only the rejection samplers propose).
+CONFIGURATIONS = [(sampler, proposal) for sampler in SAMPLERS
+                  for proposal in (PROPOSALS if sampler.startswith("hemi_rej") else PROPOSALS[:1])]
+
 #: Number of chi-square tests in this file: the significance level is Šidák-corrected for them, as Mitsuba does.
-TEST_COUNT = len(SAMPLERS) * 2 * 2 * 2
+TEST_COUNT = len(CONFIGURATIONS) * 2 * 2 * 2
 
 #: A normal at a normal-bin centre but off the axes (the memoised N is exact there), and an axis normal.
 NORMALS = {"oblique": None, "axis": (0.0, 0.0, 1.0)}
 
 
-@pytest.mark.parametrize("sampler", SAMPLERS)
+@pytest.mark.parametrize("sampler, proposal", CONFIGURATIONS)
 @pytest.mark.parametrize("D", [4, 16])
 @pytest.mark.parametrize("table", ["peaked", "flat"])
 @pytest.mark.parametrize("normal_name", ["oblique", "axis"])
-def test_sampler_pdf_matches_samples(sampler, D, table, normal_name):
+def test_sampler_pdf_matches_samples(sampler, proposal, D, table, normal_name):
     from guiding.directions import NormalBins
 
     normal = NORMALS[normal_name] or tuple(float(c[0]) for c in NormalBins(5).normal(mi.UInt32(7)))
-    guide = _trained_guide(sampler, D, table, normal)
+    guide = _trained_guide(sampler, proposal, D, table, normal)
     bsdf = mi.load_dict({"type": "diffuse", "reflectance": 0.5})
     ctx = mi.BSDFContext()
 

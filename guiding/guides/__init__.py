@@ -8,8 +8,10 @@ device-side part called from inside the Dr.Jit path loop (``new_paths``, ``sampl
 #: Learning rules and samplers of the grid guide (:mod:`guiding.guides.grid`), importable before a variant is set.
 RULES = ("mc", "sarsa", "expected_sarsa")
 SAMPLERS = ("sphere_inv", "hemi_inv", "hemi_rej", "hemi_rej_plus")
+#: How the rejection samplers propose directions (the paper's ``uniform``, or our faster ``policy``).
+PROPOSALS = ("policy", "uniform")
 
 from .base import Guide, NoPathState  # noqa: E402
 from .bsdf import BSDFGuide
 
-__all__ = ["Guide", "NoPathState", "BSDFGuide", "RULES", "SAMPLERS"]
+__all__ = ["Guide", "NoPathState", "BSDFGuide", "RULES", "SAMPLERS", "PROPOSALS"]
