@@ -1,12 +1,15 @@
-"""Benchmarks: cost per sample of our methods as a ratio against baselines timed in the same process.
+"""Benchmarks: cost per sample of every method as a ratio against ``brdf`` and Mitsuba's ``path``, timed in the
+same process.
 
 Passes of the compared integrators are interleaved (A, B, A, B, …) after a warm-up, so that machine noise hits
-them alike, and each figure is the median over passes of kernel wall time per spp (device synchronised).
+them alike. Kernel time comes from Dr.Jit's kernel history (execution time of the pass's kernels; compilation is
+reported apart); wall time adds the Python tracing of the integrator, which every ``mi.render`` call repeats.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import drjit as dr
@@ -17,61 +20,72 @@ import pandas as pd
 from .render import pass_seed
 
 
-def _timed_pass(scene: mi.Scene, integrator, spp: int, seed: int) -> float:
+@dataclass
+class PassTiming:
+    """One timed pass: wall time, its parts from Dr.Jit's kernel history, the guide update after it, counters."""
+
+    wall: float                 # launch to synchronisation, Python tracing and compilation included
+    kernel: float               # execution time of the pass's kernels
+    compile: float              # code generation and backend compilation
+    update: float               # the guide's update after the pass
+    refine: float               # the part of ``update`` an SD-tree spent refining
+    paths: int = 0
+    hits: int = 0
+    rays: int = 0
+
+
+def _timed_pass(scene: mi.Scene, integrator, spp: int, seed: int, spp_done: int) -> PassTiming:
+    dr.kernel_history()   # discard what ran before
     start = time.perf_counter()
     image = mi.render(scene, integrator=integrator, spp=spp, seed=seed)
     dr.eval(image)
     dr.sync_thread()
-    return time.perf_counter() - start
+    wall = time.perf_counter() - start
+    history = dr.kernel_history()
+    timing = PassTiming(wall=wall, kernel=sum(k.get("execution_time", 0.0) for k in history) / 1e3,
+                        compile=sum(k.get("codegen_time", 0.0) + k.get("backend_time", 0.0) for k in history) / 1e3,
+                        update=0.0, refine=0.0)
+    if hasattr(integrator, "reset_counters"):
+        timing.paths, timing.hits = int(integrator.path_count[0]), int(integrator.hit_count[0])
+        timing.rays = int(integrator.ray_count[0])
+        integrator.reset_counters()
+    guide = getattr(integrator, "guide", None)
+    if guide is not None:
+        start = time.perf_counter()
+        stats = guide.update(spp_done)
+        dr.sync_thread()
+        timing.update = time.perf_counter() - start
+        timing.refine = stats.get("refine_seconds", 0.0)
+        integrator.last_update_stats = stats
+    return timing
 
 
-def seconds_per_spp(scene: mi.Scene, integrators: dict[str, object], passes: int = 12, pass_spp: int = 8,
-                    warmup: int = 2) -> dict[str, dict[str, float]]:
-    """Median seconds per spp of each integrator's render kernel and median seconds of its guide's update,
-    its passes interleaved with the others'."""
-    render_times = {name: [] for name in integrators}
-    update_times = {name: [] for name in integrators}
+def interleaved_passes(scene: mi.Scene, integrators: dict[str, object], passes: int = 12, pass_spp: int = 8,
+                       warmup: int = 2) -> dict[str, list[PassTiming]]:
+    """``warmup + passes`` passes of every integrator, interleaved (A, B, A, B, …) so that machine noise hits
+    them alike; returns the timed passes (warm-up passes dropped, except that compile time of every pass is
+    kept in the first timed record's ``compile``)."""
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
     for integrator in integrators.values():
         guide = getattr(integrator, "guide", None)
         if guide is not None:
             guide.prepare(scene)
+    timings = {name: [] for name in integrators}
     for index in range(warmup + passes):
         for name, integrator in integrators.items():
-            seconds = _timed_pass(scene, integrator, pass_spp, pass_seed(0, index))
-            start = time.perf_counter()
-            guide = getattr(integrator, "guide", None)
-            if guide is not None:
-                guide.update((index + 1) * pass_spp)
-                dr.sync_thread()
-            if index >= warmup:
-                render_times[name].append(seconds / pass_spp)
-                update_times[name].append(time.perf_counter() - start)
-    return {name: {"seconds_per_spp": float(np.median(render_times[name])),
-                   "update_seconds": float(np.median(update_times[name]))} for name in integrators}
+            timings[name].append(_timed_pass(scene, integrator, pass_spp, pass_seed(0, index),
+                                             (index + 1) * pass_spp))
+    timed = {}
+    for name, records in timings.items():
+        timed[name] = records[warmup:]
+        timed[name][0].compile += sum(r.compile for r in records[:warmup])
+    return timed
 
 
-def baseline_vs_mitsuba(scenes: list[tuple[str, float]], passes: int = 12, max_depth: int = 16) -> pd.DataFrame:
-    """Time per spp of the ``brdf`` baseline against Mitsuba's ``path`` integrator (NEE + MIS), per scene."""
-    from .integrator import GuidedPathIntegrator
-    from .scenes import load_scene
-
-    rows = []
-    for name, scale in scenes:
-        scene = load_scene(name, scale)
-        props = mi.Properties()
-        props["max_depth"] = max_depth
-        timings = seconds_per_spp(scene, {"brdf": GuidedPathIntegrator(props),
-                                          "path": mi.load_dict({"type": "path", "max_depth": max_depth})},
-                                  passes=passes)
-        brdf, path = timings["brdf"]["seconds_per_spp"], timings["path"]["seconds_per_spp"]
-        rows.append({"scene": name, "scale": scale, "resolution": _resolution(scene),
-                     "brdf_ms_per_spp": 1e3 * brdf, "path_ms_per_spp": 1e3 * path, "ratio_brdf_over_path": brdf / path})
-    return pd.DataFrame(rows)
-
-
-def methods_vs_brdf(scenes: list[tuple[str, float]], methods: list[str], passes: int = 12,
-                    pass_spp: int = 8) -> pd.DataFrame:
-    """Per method: kernel time per spp as a ratio to ``brdf`` (same run), and the guide update's share of a pass."""
+def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int = 12, pass_spp: int = 8,
+              max_depth: int = 16) -> pd.DataFrame:
+    """Per scene and method: kernel time per spp (also as ratios to ``brdf`` and Mitsuba ``path`` timed in the
+    same run), Python tracing per pass, compile time, guide update share, memory, hit rate and rays per second."""
     from .integrator import GuidedPathIntegrator
     from .methods import make_guide
     from .scenes import load_scene
@@ -79,17 +93,61 @@ def methods_vs_brdf(scenes: list[tuple[str, float]], methods: list[str], passes:
     rows = []
     for name, scale in scenes:
         scene = load_scene(name, scale)
-        integrators = {m: GuidedPathIntegrator(guide=make_guide(m)) for m in ["brdf", *methods]}
-        timings = seconds_per_spp(scene, integrators, passes=passes, pass_spp=pass_spp)
-        brdf = timings["brdf"]["seconds_per_spp"]
-        for method in methods:
-            t = timings[method]
-            pass_seconds = t["seconds_per_spp"] * pass_spp
-            rows.append({"scene": name, "resolution": _resolution(scene), "method": method,
-                         "ms_per_spp": 1e3 * t["seconds_per_spp"], "brdf_ms_per_spp": 1e3 * brdf,
-                         "ratio_to_brdf": t["seconds_per_spp"] / brdf, "update_ms": 1e3 * t["update_seconds"],
-                         "update_share_of_pass": t["update_seconds"] / (pass_seconds + t["update_seconds"]),
-                         "table_MiB": integrators[method].guide.stats().get("table_bytes", 0) / 2**20})
+        integrators = {"path": mi.load_dict({"type": "path", "max_depth": max_depth})}
+        for method in dict.fromkeys(["brdf", *methods]):
+            props = mi.Properties()
+            props["max_depth"] = max_depth
+            integrators[method] = GuidedPathIntegrator(props, guide=make_guide(method))
+        timed = interleaved_passes(scene, integrators, passes=passes, pass_spp=pass_spp)
+        kernel_per_spp = {m: float(np.median([r.kernel for r in records])) / pass_spp
+                          for m, records in timed.items()}
+        for method, records in timed.items():
+            guide = getattr(integrators[method], "guide", None)
+            stats = guide.stats() if guide is not None else {}
+            memory = stats.get("table_bytes") or getattr(integrators[method], "last_update_stats", {}).get(
+                "memory_bytes", 0)
+            total = sum(r.wall + r.update for r in records)
+            kernel_seconds = sum(r.kernel for r in records)
+            rows.append({
+                "scene": name, "resolution": _resolution(scene), "method": method,
+                "kernel_ms_per_spp": 1e3 * kernel_per_spp[method],
+                "ratio_to_brdf": kernel_per_spp[method] / kernel_per_spp["brdf"],
+                "ratio_to_path": kernel_per_spp[method] / kernel_per_spp["path"],
+                "wall_ms_per_spp": 1e3 * float(np.median([r.wall for r in records])) / pass_spp,
+                "trace_ms_per_pass": 1e3 * float(np.median([max(r.wall - r.kernel - r.compile, 0.0)
+                                                            for r in records])),
+                "compile_s": sum(r.compile for r in records),
+                "update_ms": 1e3 * float(np.mean([r.update for r in records])),
+                "update_share": sum(r.update for r in records) / total,
+                "refine_share": sum(r.refine for r in records) / total,
+                "memory_MiB": memory / 2**20,
+                "hit_rate": sum(r.hits for r in records) / max(sum(r.paths for r in records), 1)
+                if method != "path" else None,
+                "Mrays_per_s": sum(r.rays for r in records) / kernel_seconds / 1e6 if method != "path" else None,
+            })
+    return pd.DataFrame(rows)
+
+
+#: Issue targets: (what, method, column, bound, applies on the GPU only / CPU only / both).
+TARGETS = [
+    ("`ours` ≤ 1.2× `brdf` per spp (CPU)", "ours", "ratio_to_brdf", 1.2, "cpu"),
+    ("`ours` ≤ 1.3× `brdf` per spp (GPU)", "ours", "ratio_to_brdf", 1.3, "gpu"),
+    ("grid update ≤ 2 % of pass time (`ours`)", "ours", "update_share", 0.02, "both"),
+    ("SD-tree refinement ≤ 10 % of training time", "sdtree", "refine_share", 0.10, "both"),
+    ("`brdf` ≤ 1.0× Mitsuba `path` per spp", "brdf", "ratio_to_path", 1.0, "both"),
+]
+
+
+def target_table(frame: pd.DataFrame, device_kind: str) -> pd.DataFrame:
+    """Each target that applies to ``device_kind`` (``cpu`` or ``gpu``), per scene: the measured value and
+    whether it is met."""
+    rows = []
+    for what, method, column, bound, kind in TARGETS:
+        if kind not in (device_kind, "both"):
+            continue
+        for _, row in frame[frame["method"] == method].iterrows():
+            rows.append({"target": what, "scene": row["scene"], "measured": row[column],
+                         "met": bool(row[column] <= bound)})
     return pd.DataFrame(rows)
 
 
@@ -98,11 +156,15 @@ def _resolution(scene: mi.Scene) -> str:
     return f"{size[0]}x{size[1]}"
 
 
-def write_table(frame: pd.DataFrame, stem: Path, title: str, device: str, command: str) -> None:
-    """``stem.csv`` and ``stem.md`` (the Markdown names the device, the date and the command that made it)."""
+def write_table(frame: pd.DataFrame, stem: Path, title: str, device: str, command: str,
+                sections: dict[str, pd.DataFrame] | None = None) -> None:
+    """``stem.csv`` and ``stem.md`` (the Markdown names the device, the date and the command that made it, and
+    appends ``sections``, titled tables)."""
     stem.parent.mkdir(parents=True, exist_ok=True)
     frame.to_csv(stem.with_suffix(".csv"), index=False, float_format="%.4g")
     markdown = frame.to_markdown(index=False, floatfmt=".4g")
+    for heading, table in (sections or {}).items():
+        markdown += f"\n\n## {heading}\n\n{table.to_markdown(index=False, floatfmt='.4g')}"
     stem.with_suffix(".md").write_text(f"# {title}\n\nDevice: {device}. Generated {time.strftime('%Y-%m-%d')} by "
                                        f"`{command}`.\n\n{markdown}\n")
 

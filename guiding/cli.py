@@ -21,6 +21,11 @@ from .errors import GuidingError
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 
+#: What ``bench`` times by default: the shared scenes (method.md) and every kind of method.
+BENCH_SCENES = ("cornell-box", "veach-ajar", "staircase2", "living-room")
+BENCH_METHODS = ("ours", "ours-uniform-proposals", "ours-no-rejopt", "ours-expected", "sarsa-sphere_inv",
+                 "sarsa-hemi_inv", "sdtree", "quadtree-grid")
+
 
 class _Parser(argparse.ArgumentParser):
     """argparse, but a usage error is one line (not the usage text) and exit code 2."""
@@ -83,12 +88,13 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("image")
     evaluate.add_argument("ref")
 
-    bench = commands.add_parser("bench", help="time per spp of `brdf` vs Mitsuba's `path` (same process)")
-    bench.add_argument("--scenes", default="cornell:1,door-ajar:1",
-                       help="comma-separated NAME:SCALE list (default cornell:1,door-ajar:1)")
-    bench.add_argument("--passes", type=_positive_int, default=12, help="timed passes per integrator")
-    bench.add_argument("--methods", default="ours,ours-no-rejopt,ours-expected,sarsa-sphere_inv,sarsa-hemi_inv",
-                       help="methods timed against brdf (comma-separated)")
+    bench = commands.add_parser("bench", help="cost per spp of every method vs `brdf` and Mitsuba's `path` "
+                                "(same process, interleaved passes)")
+    bench.add_argument("--scenes", default=",".join(f"{s}:0.25" for s in BENCH_SCENES),
+                       help="comma-separated NAME:SCALE list (default: the four shared scenes at 1/4 resolution)")
+    bench.add_argument("--passes", type=_positive_int, default=8, help="timed passes per integrator (default 8)")
+    bench.add_argument("--methods", default=",".join(BENCH_METHODS),
+                       help="methods timed against brdf and path (comma-separated)")
     bench.add_argument("--out", default="results/bench", help="output folder (default results/bench)")
     _add_backend_options(bench)
 
@@ -244,21 +250,16 @@ def _command_bench(args) -> None:
         check_method(method)
     out = _prepare_output_dir(args.out)
     variant = set_variant(args.variant, args.threads)
-    from .bench import baseline_vs_mitsuba, methods_vs_brdf, write_table
+    from .bench import benchmark, target_table, write_table
 
     device = _device_name(variant)
     tag = "gpu" if variant.startswith("cuda") else "cpu"
-    frame = baseline_vs_mitsuba(scenes, passes=args.passes)
-    write_table(frame, out / f"baseline_{tag}", "Time per spp: `brdf` (ours, no NEE) vs Mitsuba `path` (NEE+MIS), "
-                "max depth 16", device, "python -m guiding bench")
+    frame = benchmark(scenes, [m for m in args.methods.split(",") if m], passes=args.passes)
+    command = "python -m guiding bench" + (f" --variant {args.variant}" if args.variant != "auto" else "")
+    write_table(frame, out / f"benchmark_{tag}", "Cost per spp of every method vs `brdf` and Mitsuba `path` (same "
+                f"run, {args.passes} interleaved passes of 8 spp after 2 warm-up passes, max depth 16)", device,
+                command, sections={"Targets": target_table(frame, tag)})
     print(frame.to_string(index=False))
-    methods = [m for m in args.methods.split(",") if m]
-    if methods:
-        frame = methods_vs_brdf(scenes, methods, passes=args.passes)
-        write_table(frame, out / f"methods_{tag}", "Time per spp of guided methods vs `brdf` (same run, interleaved "
-                    "passes of 8 spp, after 2 warm-up passes) and the guide update's share of a pass", device,
-                    "python -m guiding bench")
-        print(frame.to_string(index=False))
 
 
 def _command_demo(args) -> None:

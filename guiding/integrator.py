@@ -27,8 +27,9 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
       ``rr_min`` (float, 0.05): lower bound of the continuation probability ``q = max(max_rgb(β), rr_min)``.
       ``method`` (str, "brdf"): a method name of :mod:`guiding.methods`; ignored when a guide is passed.
 
-    Attributes read by the progressive renderer after each pass: ``path_count`` and ``hit_count`` (paths with
-    a non-zero contribution), both reset by :meth:`reset_counters`.
+    Attributes read by the progressive renderer and the benchmark after each pass: ``path_count``,
+    ``hit_count`` (paths with a non-zero contribution) and ``ray_count`` (rays traced), reset by
+    :meth:`reset_counters`.
     """
 
     def __init__(self, props: mi.Properties = None, guide: Guide | None = None):
@@ -49,6 +50,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     def reset_counters(self) -> None:
         self.path_count = mi.UInt32(0)
         self.hit_count = mi.UInt32(0)
+        self.ray_count = mi.UInt32(0)
 
     @dr.syntax
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f, medium: mi.Medium = None,
@@ -61,12 +63,14 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         β = mi.Spectrum(1)            # Path throughput weight
         L = mi.Spectrum(0)            # Radiance accumulator
         depth = mi.UInt32(0)          # Number of surface vertices so far
+        rays = mi.UInt32(0)           # Rays traced by this path
         active = dr.full(mi.Bool, True, dr.width(ray.o)) & active
         started = mi.Bool(active)     # The lanes that trace a path (for the hit rate)
         path_state = guide.new_paths(dr.width(ray.o), self.max_depth)
 
         while dr.hint(active, max_iterations=self.max_depth, label="Guided path tracer"):
             si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0))
+            rays += 1
 
             # ----------------------------- Emission -----------------------------
             emitted = si.emitter(scene).eval(si, active)
@@ -104,6 +108,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         hit = dr.any(L != 0)
         dr.scatter_reduce(dr.ReduceOp.Add, self.path_count, mi.UInt32(1), mi.UInt32(0), started)
         dr.scatter_reduce(dr.ReduceOp.Add, self.hit_count, mi.UInt32(1), mi.UInt32(0), started & hit)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.ray_count, rays, mi.UInt32(0), started)
         return L, mi.Bool(True), []
 
     def to_string(self) -> str:
