@@ -76,6 +76,11 @@ def build_parser() -> argparse.ArgumentParser:
     budget.add_argument("--seconds", type=_positive_float, help="time budget in seconds")
     render.add_argument("--exclude-passes", type=int, default=0,
                         help="leading passes not counted against a seconds budget (default 0)")
+    render.add_argument("--combine", choices=["last", "inverse-variance"], default="last",
+                        help="final image of a guide with iterations (sdtree): the last iteration, or the last "
+                        "four weighted by their inverse variance (default last)")
+    render.add_argument("--snapshots", action="store_true",
+                        help="also write the image after every pass_spp*2^k spp as image_snapNNNNN.exr")
     _add_backend_options(render)
 
     reference = commands.add_parser("reference", help="render a reference with Mitsuba's `path` integrator")
@@ -163,16 +168,20 @@ def _device_name(variant: str) -> str:
 
 def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget, variant: str) -> dict:
     from . import imageio
-    from .render import render
+    from .render import SnapshotWriter, render
     from .scenes import find_scene, load_scene
 
     scene = load_scene(scene_name, args.scale, args.scene_dir)
-    result = render(scene, integrator, budget, seed=args.seed, progress=False if args.quiet else None)
+    snapshots = SnapshotWriter(out) if getattr(args, "snapshots", False) else None
+    result = render(scene, integrator, budget, seed=args.seed, progress=False if args.quiet else None,
+                    combine=getattr(args, "combine", "last"), snapshot=snapshots)
     film_size = [int(v) for v in scene.sensors()[0].film().size()]
     stats = {"scene": scene_name, "scene_file": str(find_scene(scene_name, args.scene_dir)), "scale": args.scale,
              "resolution": film_size, "method": method, "seed": args.seed, "max_depth": args.max_depth,
              **result.summary(), "guide": getattr(getattr(integrator, "guide", None), "stats", dict)(),
              "provenance": _provenance(variant, args.threads), "per_pass": [asdict(p) for p in result.passes]}
+    if snapshots is not None:
+        stats["snapshots"] = snapshots.entries  # stats.json is written last: only the files it lists are complete
     imageio.write_exr(out / "image.exr", result.image)
     imageio.write_png(out / "preview.png", result.image)
     with imageio.atomic_path(out / "stats.json") as tmp, open(tmp, "w") as file:

@@ -497,9 +497,20 @@ def render_seconds_at(per_pass: list[dict], spp: int) -> float:
     return total
 
 
+#: What each point of an error-vs-time curve keeps of the metrics.
+CURVE_METRICS = ("mae", "mae_hdr", "relmse", "nonfinite_pixels")
+
+
 def evaluate_run(image: str, stats: str, reference: str, out: str, run: dict | None = None) -> dict:
     """metrics.json of one render: the run, its metrics against the reference, its stats and provenance, and
-    an error-vs-time curve (from the per-pass snapshots listed in stats.json, when the renderer wrote any)."""
+    an error-vs-time curve.
+
+    The curve has a point for every snapshot listed in stats.json (``python -m guiding render --snapshots``;
+    stats.json is written last, so files of an interrupted render are never listed) and one for the final image
+    (which replaces the snapshot the renderer takes of it). Each point: spp, ``render_seconds`` (render + update
+    seconds up to that pass, compilation excluded: the figures' time axis), the seconds counted against the
+    budget when the renderer recorded them, and the metrics.
+    """
     from . import imageio
     from .metrics import evaluate
 
@@ -507,15 +518,23 @@ def evaluate_run(image: str, stats: str, reference: str, out: str, run: dict | N
     ref = imageio.read_exr(reference)
     metrics = evaluate(imageio.read_exr(image), ref)
     per_pass = stats_data.get("per_pass", [])
+    final_spp = stats_data["spp"]
     curve = []
-    for snap in stats_data.get("snapshots", []):  # renderer option proposed in docs/harness.md
+    for snap in stats_data.get("snapshots", []):
+        if snap["spp"] == final_spp:
+            continue  # the final image itself
+        if Path(snap["file"]).name != snap["file"]:
+            raise GuidingError(f"{stats}: snapshot file {snap['file']!r} is not a file name in the render folder")
         snap_metrics = evaluate(imageio.read_exr(Path(image).parent / snap["file"]), ref)
         curve.append({"spp": snap["spp"], "render_seconds": render_seconds_at(per_pass, snap["spp"]),
-                      **{k: snap_metrics[k] for k in ("mae", "mae_hdr", "relmse")}})
-    curve.append({"spp": stats_data["spp"], "render_seconds": render_seconds_at(per_pass, stats_data["spp"]),
-                  **{k: metrics[k] for k in ("mae", "mae_hdr", "relmse")}})
+                      "counted_seconds": snap.get("seconds"),
+                      **{k: snap_metrics[k] for k in CURVE_METRICS}})
+    curve.append({"spp": final_spp, "render_seconds": render_seconds_at(per_pass, final_spp),
+                  "counted_seconds": stats_data.get("budget_seconds_counted"),
+                  **{k: metrics[k] for k in CURVE_METRICS}})
     keep = ("scene", "method", "seed", "scale", "resolution", "spp", "seconds", "compile_seconds",
-            "budget_seconds_counted", "passes", "hit_rate", "max_depth")
+            "budget_seconds_counted", "passes", "hit_rate", "max_depth", "spp_in_image", "combine",
+            "training_stopped")
     result = {**(run or {}), **metrics, "render_seconds": render_seconds_at(per_pass, stats_data["spp"]),
               "stats": {k: stats_data.get(k) for k in keep}, "provenance": stats_data.get("provenance", {}),
               "curve": sorted(curve, key=lambda c: c["spp"])}

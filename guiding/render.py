@@ -1,30 +1,62 @@
 """The progressive renderer: passes of a few spp, each with its own seed, until an spp or a time budget is spent.
 
-Every pass is accumulated into the final image (training passes included, as in the paper), except for guides
-whose update reports ``iteration_done`` (the SD-tree's doubling schedule): the image then restarts, so it holds
-the last iteration alone, as Müller et al. do. After each pass the
-device is synchronised, the pass is timed, and the guide updates its distributions. Pass-varying values (the seed)
-reach the kernel as parameters, so the same compiled kernel serves every pass; ``kernels_compiled`` in the per-pass
-statistics shows it.
+**Iterations.** Passes accumulate (in float64) into the image of the current *iteration*. A guide without a schedule
+(the grid guide, BSDF sampling) has a single iteration, so the image is the mean over all passes, training passes
+included, as in the paper. A guide whose update reports ``iteration_done`` (the SD-tree's doubling schedule) closes
+an iteration there and the next pass starts a new image; the final image is then (``combine``)
+
+* ``"last"``: the last iteration alone (Müller et al. 2017), or
+* ``"inverse-variance"``: the mean of the last :data:`COMBINED_ITERATIONS` iterations weighted by the inverse of
+  each one's estimated variance (Müller 2019, "Practical Path Guiding in Production"; the same number of
+  iterations as his implementation). An iteration's variance is estimated from the spread of its pass images
+  (:func:`iteration_variance`), so an iteration of a single pass has no estimate and no weight.
+
+Every iteration's spp, time, hit rate, variance, weight and the guide's statistics at its end are in
+:attr:`RenderResult.iterations`.
+
+**Training under a seconds budget.** At every iteration boundary, the time of the next iteration is estimated as
+its spp × the measured seconds per spp of the iteration that just ended (render and update, compilation excluded,
+refinement included). If it would not fit in the budget left, the renderer calls the guide's ``stop_training()``
+and the frozen guide (refined with the data of the iteration that just ended) renders the rest of the budget into
+that iteration's image, which becomes the final iteration: no sample is thrown away (Müller's implementation
+likewise extends its current iteration to the end of a time budget). When training stopped (spp and counted
+seconds) is in :attr:`RenderResult.training_stopped`, also when the guide's own spp schedule ended it.
+
+**Snapshots.** ``snapshot`` is called with the image the render would return if it stopped now, after every pass
+that completes ``pass_spp · 2^k`` spp and after the last pass (:class:`SnapshotWriter` writes them to EXR files).
+
+After each pass the device is synchronised, the pass is timed, and the guide updates its distributions.
+Pass-varying values (the seed) reach the kernel as parameters, so the same compiled kernel serves every pass;
+``kernels_compiled`` in the per-pass statistics shows it.
 
 Timing: ``seconds`` of a pass is wall time from launch to synchronisation, compilation included;
 ``compile_seconds`` is the part Dr.Jit spent generating and compiling code (from its kernel history). A seconds
 budget counts pass and update time without compilation (a guide compiles a second kernel once it starts guiding,
 which would otherwise eat a short budget), and not the first ``exclude_passes`` passes at all (the paper excluded
-its first 80 spp, which contained compilation).
+its first 80 spp, which contained compilation). The bookkeeping between passes (closing an iteration, snapshots,
+``on_pass``) runs outside the timed regions and costs no budget.
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from collections import deque
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from .errors import GuidingError
+
+COMBINE_LAST = "last"
+COMBINE_INVERSE_VARIANCE = "inverse-variance"
+COMBINE_MODES = (COMBINE_LAST, COMBINE_INVERSE_VARIANCE)
+#: Iterations an inverse-variance combination weighs: the last four, as in Müller's implementation.
+COMBINED_ITERATIONS = 4
 
 
 @dataclass
@@ -72,11 +104,34 @@ class PassStats:
 
 
 @dataclass
+class IterationStats:
+    """One iteration: the passes after one of the guide's ``iteration_done`` up to the next (all passes for other
+    guides); the final one also holds the passes rendered with the frozen guide once training stopped."""
+
+    index: int
+    spp_start: int           # spp rendered before its first pass
+    spp_end: int             # spp rendered after its last pass
+    passes: int
+    seconds: float           # render + update seconds of its passes, compilation excluded (refinement included)
+    hit_rate: float          # spp-weighted mean of its passes' hit rates
+    variance: float | None = None   # estimated variance of its image, mean over pixels and channels (None: 1 pass)
+    weight: float = 0.0      # its weight in the final image
+    guide: dict = field(default_factory=dict)   # the guide's statistics at its end (see _iteration_record)
+
+    @property
+    def spp(self) -> int:
+        return self.spp_end - self.spp_start
+
+
+@dataclass
 class RenderResult:
-    image: np.ndarray        # (H, W, 3) float32, the mean over all passes
+    image: np.ndarray        # (H, W, 3) float32: the last iteration, or the combination of the last ones
     passes: list[PassStats]
     budget: Budget
-    spp_in_image: int        # samples per pixel the image averages (fewer than `spp` when iterations restart it)
+    spp_in_image: int        # samples per pixel the image is made of (fewer than `spp` when iterations restart it)
+    combine: str = COMBINE_LAST
+    iterations: list[IterationStats] = field(default_factory=list)
+    training_stopped: dict | None = None   # {"spp", "seconds", "reason", ...} once the guide stopped learning
 
     @property
     def spp(self) -> int:
@@ -92,21 +147,126 @@ class RenderResult:
 
     @property
     def hit_rate(self) -> float:
-        return float(np.average([p.hit_rate for p in self.passes], weights=[p.spp for p in self.passes]))
+        return _spp_weighted_hit_rate(self.passes)
 
     def summary(self) -> dict:
-        return {"spp": self.spp, "spp_in_image": self.spp_in_image, "seconds": self.seconds, "compile_seconds": self.compile_seconds,
-                "budget_seconds_counted": self.counted_seconds(), "passes": len(self.passes),
-                "hit_rate": self.hit_rate, "budget": asdict(self.budget)}
+        return {"spp": self.spp, "spp_in_image": self.spp_in_image, "seconds": self.seconds,
+                "compile_seconds": self.compile_seconds, "budget_seconds_counted": self.counted_seconds(),
+                "passes": len(self.passes), "hit_rate": self.hit_rate, "budget": asdict(self.budget),
+                "combine": self.combine, "training_stopped": self.training_stopped,
+                "iterations": [{**asdict(it), "spp": it.spp} for it in self.iterations]}
 
     def counted_seconds(self) -> float:
         """Time counted against a seconds budget: excluded leading passes and compilation left out."""
         return sum(p.counted_seconds for p in self.passes[self.budget.exclude_passes:])
 
 
+def _spp_weighted_hit_rate(passes: list[PassStats]) -> float:
+    return float(np.average([p.hit_rate for p in passes], weights=[p.spp for p in passes]))
+
+
 def pass_seed(seed: int, index: int) -> int:
     """A distinct 32-bit sampler seed for every (run seed, pass) pair."""
     return int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
+
+
+def is_snapshot_spp(spp_total: int, pass_spp: int) -> bool:
+    """Whether a snapshot is due after a pass that completes ``spp_total`` spp: ``pass_spp · 2^k`` (k ≥ 0)."""
+    passes, rest = divmod(spp_total, pass_spp)
+    return rest == 0 and passes > 0 and passes & (passes - 1) == 0
+
+
+# ------------------------------------------------------------------------------------ iteration images
+
+def iteration_variance(first: np.ndarray, second: np.ndarray, spp: int, passes: int) -> float | None:
+    """Estimated variance of an iteration's image from the spread of its pass images; None for fewer than 2 passes.
+
+    ``first`` = Σ s_j X_j and ``second`` = Σ s_j X_j² over its passes (pass image X_j of s_j spp, S = Σ s_j =
+    ``spp``). Since Var(X_j) = σ²/s_j, ``σ̂² = Σ s_j (X_j − X̄)² / (n − 1) = (second − first²/S) / (n − 1)`` is an
+    unbiased estimate of the per-sample variance σ² of each pixel and channel, and ``σ̂²/S`` of the variance of
+    the iteration's image ``X̄ = first / S``. Returns its mean over pixels and channels.
+    """
+    if passes < 2:
+        return None
+    per_sample = np.maximum(second - first * first / spp, 0.0) / (passes - 1)   # rounding can go below 0
+    return float(np.mean(per_sample / spp))
+
+
+def combine_iterations(images: list[np.ndarray], variances: list[float | None]) -> tuple[np.ndarray, list[float]]:
+    """``(Σ w_k I_k, [w_k])``: iteration images weighted by the inverse of their variance, ``w_k ∝ 1/V_k``,
+    normalised to sum to one. An image without a variance estimate gets weight 0; when none has one, the last
+    image alone is returned (weight 1). A zero variance (a black image) is floored, so such images share the
+    weight equally."""
+    inverse = np.array([0.0 if v is None else 1.0 / max(v, 1e-300) for v in variances])
+    if not inverse.any():
+        inverse[-1] = 1.0
+    weights = inverse / inverse.sum()
+    image = sum(w * img for w, img in zip(weights, images) if w > 0)
+    return image, [float(w) for w in weights]
+
+
+class _IterationImages:
+    """The current iteration's running sums on the device (float64): ``Σ s_j X_j`` and ``Σ s_j X_j²`` over its
+    passes; and, on the host (float64), the finished iterations that the final image may still need."""
+
+    def __init__(self, combine: str):
+        self.combine = combine
+        self.kept: deque = deque(maxlen=COMBINED_ITERATIONS if combine == COMBINE_INVERSE_VARIANCE else 1)
+        self.first = self.second = None
+        self.spp = self.passes = 0
+
+    def add_pass(self, image, spp: int) -> None:
+        """Add a pass image (a device tensor) of ``spp`` samples per pixel (inside the pass's timed region)."""
+        x = mi.TensorXd(image)
+        weighted = x * spp
+        if self.passes == 0:   # the sums of a finished iteration are simply replaced
+            self.first, self.second = weighted, weighted * x
+        else:
+            self.first, self.second = self.first + weighted, self.second + weighted * x
+        dr.eval(self.first, self.second)
+        self.spp += spp
+        self.passes += 1
+
+    def _current(self) -> tuple[np.ndarray, int, float | None]:
+        first = self.first.numpy()[..., :3].astype(np.float64)
+        second = self.second.numpy()[..., :3].astype(np.float64)
+        return first / self.spp, self.spp, iteration_variance(first, second, self.spp, self.passes)
+
+    def close(self, record: IterationStats) -> None:
+        """End the current iteration: keep its image, fill in its variance; the next pass starts a new one."""
+        image, _, record.variance = self._current()
+        self.kept.append((record, image))
+        self.spp = self.passes = 0
+
+    def image(self) -> tuple[np.ndarray, int, list[tuple[IterationStats | None, float]]]:
+        """What the render shows now: (image (H, W, 3) float64, spp it is made of, [(iteration, weight)]), with
+        the running iteration (record None) as the newest one."""
+        items = [(record, image, record.spp, record.variance) for record, image in self.kept]
+        if self.passes:
+            items.append((None, *self._current()))
+        if self.combine == COMBINE_LAST:
+            record, image, spp, _ = items[-1]
+            return image, spp, [(record, 1.0)]
+        items = items[-COMBINED_ITERATIONS:]
+        image, weights = combine_iterations([i[1] for i in items], [i[3] for i in items])
+        spp = sum(i[2] for i, w in zip(items, weights) if w > 0)
+        return image, spp, [(i[0], w) for i, w in zip(items, weights)]
+
+
+class SnapshotWriter:
+    """A ``snapshot`` callback for :func:`render` that writes ``image_snapNNNNN.exr`` (spp zero-padded to five
+    digits, atomically) into ``folder`` and lists them in :attr:`entries` (for ``stats.json``)."""
+
+    def __init__(self, folder: str | Path):
+        self.folder = Path(folder)
+        self.entries: list[dict] = []
+
+    def __call__(self, spp: int, image: np.ndarray, seconds: float, spp_in_image: int) -> None:
+        from .imageio import write_exr
+
+        name = f"image_snap{spp:05d}.exr"
+        write_exr(self.folder / name, image)
+        self.entries.append({"spp": spp, "file": name, "seconds": seconds, "spp_in_image": spp_in_image})
 
 
 class _Progress:
@@ -142,8 +302,26 @@ def _kernel_costs(history: list[dict]) -> tuple[float, int, int]:
     return compile_ms / 1000.0, len(jit), compiled
 
 
+def _iteration_record(index: int, passes: list[PassStats]) -> IterationStats:
+    """The record of an iteration made of ``passes``; its guide statistics are those of the pass that ended its
+    training (with the refinement it triggered), or of its last pass."""
+    closing = next((p for p in reversed(passes) if p.guide.get("iteration_done")), passes[-1])
+    return IterationStats(index, passes[0].spp_total - passes[0].spp, passes[-1].spp_total, len(passes),
+                          sum(p.counted_seconds for p in passes), _spp_weighted_hit_rate(passes),
+                          guide=dict(closing.guide))
+
+
+def next_iteration_fits(iteration: IterationStats, next_spp: int, remaining_seconds: float) -> tuple[bool, float]:
+    """(fits, estimated seconds): whether an iteration of ``next_spp`` spp, at the seconds per spp measured over
+    ``iteration``, fits in ``remaining_seconds``."""
+    estimate = next_spp * iteration.seconds / iteration.spp
+    return estimate <= remaining_seconds, estimate
+
+
 def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, seed: int = 0,
-           progress: bool | None = None, sensor: int = 0) -> RenderResult:
+           progress: bool | None = None, sensor: int = 0, combine: str = COMBINE_LAST,
+           snapshot: Callable[[int, np.ndarray, float, int], None] | None = None,
+           on_pass: Callable[[PassStats, np.ndarray], None] | None = None) -> RenderResult:
     """Render ``scene`` progressively with ``integrator`` (a ``guided_path`` integrator or any Mitsuba one).
 
     Parameters:
@@ -154,7 +332,15 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
       seed: run seed; pass ``i`` uses ``pass_seed(seed, i)``.
       progress: show a progress line on stderr (default: when stderr is a terminal).
       sensor: index of the sensor to render.
+      combine: the final image of a guide with iterations: ``"last"`` or ``"inverse-variance"`` (module docstring).
+      snapshot: called as ``snapshot(spp_total, image, counted_seconds, spp_in_image)`` with the image the render
+        would return now (float64), after each pass that completes ``pass_spp · 2^k`` spp and after the last
+        pass (e.g. a :class:`SnapshotWriter`).
+      on_pass: called as ``on_pass(stats, image)`` after every pass with its statistics and its own image
+        ((H, W, 3) float64).
     """
+    if combine not in COMBINE_MODES:
+        raise GuidingError(f"unknown combination '{combine}' (known: {', '.join(COMBINE_MODES)})")
     guide = getattr(integrator, "guide", None)
     if guide is not None:
         guide.prepare(scene)
@@ -162,11 +348,26 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
             guide.set_budget(budget.spp)
     counters = hasattr(integrator, "reset_counters")
 
-    accumulated = None
+    images = _IterationImages(combine)
     passes: list[PassStats] = []
+    iterations: list[IterationStats] = []
+    training_stopped = None
     display = _Progress(budget, progress)
     spp_total, counted = 0, 0.0
-    spp_in_image = 0
+    snapshot_spp = None
+
+    def close_iteration() -> IterationStats:
+        record = _iteration_record(len(iterations), passes[len(passes) - images.passes:])
+        images.close(record)
+        iterations.append(record)
+        return record
+
+    def take_snapshot() -> None:
+        nonlocal snapshot_spp
+        image, spp_in_image, _ = images.image()
+        snapshot(spp_total, image, counted, spp_in_image)
+        snapshot_spp = spp_total
+
     try:
         with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
             dr.kernel_history()  # discard what ran before this render
@@ -187,15 +388,13 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
                 start = time.perf_counter()
                 image = mi.render(scene, integrator=integrator, spp=spp, seed=pass_seed(seed, index),
                                   sensor=sensor)
-                weighted = mi.TensorXd(image) * spp
-                accumulated = weighted if accumulated is None or spp_in_image == 0 else accumulated + weighted
-                spp_in_image += spp
-                dr.eval(accumulated)
+                images.add_pass(image, spp)
                 dr.sync_thread()
                 seconds = time.perf_counter() - start
                 compile_seconds, launched, compiled = _kernel_costs(dr.kernel_history())
 
                 # ------------------------------- Guide update -------------------------------
+                learning = bool(getattr(guide, "learns", False))
                 start = time.perf_counter()
                 guide_stats = guide.update(spp_total + spp) if guide is not None else {}
                 dr.sync_thread()
@@ -209,10 +408,42 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
                 if index >= budget.exclude_passes:
                     counted += passes[-1].counted_seconds
                 display.show(spp_total, counted)
-                if guide_stats.get("iteration_done") and not (budget.spp is not None and spp_total >= budget.spp):
-                    spp_in_image = 0  # the next iteration starts the image afresh
+
+                # ------------------- Schedule and bookkeeping (not timed) --------------------
+                if guide_stats.get("iteration_done"):
+                    ended = _iteration_record(len(iterations), passes[-images.passes:])
+                    fits = True
+                    if budget.seconds is not None and guide.learns and hasattr(guide, "stop_training"):
+                        next_spp, remaining = guide.iteration_spp(), budget.seconds - counted
+                        fits, estimate = next_iteration_fits(ended, next_spp, remaining)
+                    if fits:
+                        close_iteration()
+                    else:
+                        # The iteration that just ended becomes the final one: the frozen guide (refined with
+                        # its data) renders the rest of the budget into its image, so no sample is discarded.
+                        guide.stop_training()
+                        training_stopped = {
+                            "spp": spp_total, "seconds": counted, "iteration": ended.index,
+                            "reason": "seconds budget: the next iteration would not fit",
+                            "next_iteration_spp": next_spp,
+                            "next_iteration_seconds_estimate": estimate, "remaining_seconds": remaining}
+                if learning and not getattr(guide, "learns", False) and training_stopped is None:
+                    training_stopped = {"spp": spp_total, "seconds": counted,
+                                        "reason": "the guide's schedule: its final iteration records nothing"}
+                if on_pass is not None:
+                    on_pass(passes[-1], image.numpy()[..., :3].astype(np.float64))
+                if snapshot is not None and is_snapshot_spp(spp_total, budget.pass_spp):
+                    take_snapshot()
+                dr.kernel_history()  # whatever the bookkeeping launched is no part of the next pass
+        if images.passes:
+            close_iteration()   # the final iteration: the rest of the budget after the last boundary
+        if snapshot is not None and passes and snapshot_spp != spp_total:
+            take_snapshot()
     finally:
         display.close()
 
-    image = (accumulated / spp_in_image).numpy().astype(np.float32)[..., :3]
-    return RenderResult(image, passes, budget, spp_in_image)
+    image, spp_in_image, weights = images.image()
+    for record, weight in weights:
+        record.weight = weight
+    return RenderResult(image.astype(np.float32), passes, budget, spp_in_image, combine, iterations,
+                        training_stopped)

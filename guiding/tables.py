@@ -240,9 +240,29 @@ def equal_time(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
     return cells[columns], text
 
 
-def convergence(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
-    cells = cells_frame(runs, "convergence", ["scene", "method", "budget"])
-    budgets = list(dict.fromkeys(runs["budget"]))
+def curve_rows(rows: list[dict]) -> list[dict]:
+    """One row per point of each render's error-vs-time curve, for the convergence table: a snapshot's budget is
+    ``spp{N}``, the final image keeps the render's budget. A render without snapshots stays one row."""
+    points = []
+    for row in rows:
+        curve = row.get("curve", [])
+        if len(curve) < 2:
+            points.append(row)
+            continue
+        for i, point in enumerate(curve):
+            final = i == len(curve) - 1
+            points.append({**row, "budget": row["budget"] if final else f"spp{point['spp']}",
+                           **{k: point.get(k, row.get(k)) for k in ("mae", "mae_hdr", "relmse", "nonfinite_pixels",
+                                                                     "render_seconds")},
+                           "stats": {**row.get("stats", {}), "spp": point["spp"]}})
+    return points
+
+
+def convergence(spec: dict, runs: pd.DataFrame, points: pd.DataFrame | None = None) -> tuple[pd.DataFrame, str]:
+    """Convergence table: ``points`` (default ``runs``) holds one row per curve point (:func:`curve_rows`)."""
+    points = runs if points is None else points
+    cells = cells_frame(points, "convergence", ["scene", "method", "budget"])
+    budgets = list(points.groupby("budget", sort=False)["spp"].mean().sort_values(kind="stable").index)
     lookup = {(c["scene"], c["method"], c["budget"]): c for c in cells.to_dict("records")}
     rows = []
     for scene in spec["scenes"]:
@@ -254,7 +274,8 @@ def convergence(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
             rows.append(row)
     text = "\n\n".join([
         _header(spec, runs, "Convergence: error against time"),
-        "Each cell: MAE @ render + update seconds (compilation excluded).",
+        "Each cell: MAE @ render + update seconds (compilation excluded); with per-pass snapshots (`--snapshots`), "
+        "the spp columns are points on one render's curve.",
         markdown_table(["scene", "method", *budgets], rows),
         provenance_note(runs, spec["timed"])]) + "\n"
     columns = ["scene", "method", "cli_method", "label", "budget", "mae", "mae_std", "seeds", "mae_hdr", "relmse",
@@ -268,7 +289,10 @@ BUILDERS = {"table1": table1, "table2": table2, "equal_time": equal_time, "conve
 def build(spec: dict, rows: list[dict]) -> tuple[pd.DataFrame, str, pd.DataFrame]:
     """(cells CSV frame, Markdown text, runs CSV frame) of one experiment."""
     runs = runs_frame(rows)
-    cells, text = BUILDERS[spec["name"]](spec, runs)
+    if spec["name"] == "convergence":
+        cells, text = convergence(spec, runs, runs_frame(curve_rows(rows)))
+    else:
+        cells, text = BUILDERS[spec["name"]](spec, runs)
     return cells, text, runs
 
 

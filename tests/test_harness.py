@@ -22,6 +22,7 @@ import pandas as pd
 import pytest
 
 from guiding import figures, harness, imageio, tables
+from guiding.errors import GuidingError
 
 ROOT = Path(__file__).resolve().parent.parent
 CI_CONFIG = ROOT / "config" / "ci.yaml"
@@ -103,7 +104,7 @@ def _mutate(path, value):
     (("experiments", "equal_time", "methods"), ["nope"], "method 'nope' is not declared under 'methods'"),
     (("experiments", "equal_time", "scenes"), ["kitchen"], "scene 'kitchen' is not declared under 'scenes'"),
     (("experiments", "equal_time", "budget"), "fast", "budget: 'fast' is not declared under 'budgets'"),
-    (("experiments", "table1", "budget"), "convergence", "only the convergence experiment takes a list"),
+    (("budgets", "equal_spp", "spp"), [8, 16], "only the convergence experiment takes a list"),
     (("methods", "nope"), {"method": "no-such-method"}, None),
 ])
 def test_bad_config_gives_one_message_naming_the_key(path, value, message):
@@ -209,6 +210,26 @@ def test_equal_time_and_convergence_tables():
     assert "| scene | method | spp32 | spp64 |" in text and "0.03125 @ 0.32 s" in text
 
 
+def test_convergence_table_from_snapshot_curves():
+    """One render per method with snapshots: its curve points become the table's spp columns, the final image
+    keeps the render's budget column, and the runs table still has one row per render."""
+    config = harness.load_config(FULL_CONFIG)
+    spec = _spec(config, "convergence")
+    rows = []
+    for method in spec["methods"]:
+        row = _row("convergence", "door-ajar", method, 0, 0.01, budget="10s", spp=200, seconds=10.0)
+        row["curve"] = [{"spp": s, "render_seconds": s / 20, "mae": 1 / s, "mae_hdr": 2 / s, "relmse": 3 / s,
+                         "nonfinite_pixels": 0} for s in (8, 16, 32)] + [row["curve"][0]]
+        rows.append(row)
+    cells, text, runs = tables.build(spec, rows)
+    assert len(runs) == len(spec["methods"])
+    assert "| scene | method | spp8 | spp16 | spp32 | 10s |" in text
+    assert "| **door-ajar** | BRDF | 0.125 @ 0.4 s | 0.0625 @ 0.8 s | 0.03125 @ 1.6 s | 0.01 @ 10 s |" in text
+    brdf = cells[cells.method == "brdf"].set_index("budget")
+    assert brdf.loc["spp16", "spp"] == 16 and brdf.loc["10s", "spp"] == 200
+    assert brdf.loc["spp32", "relmse"] == pytest.approx(3 / 32)
+
+
 # --------------------------------------------------------------------------------- figures (synthetic)
 
 def test_auto_crop_finds_the_noisy_region():
@@ -258,22 +279,35 @@ def test_figures_draw_from_synthetic_runs(tmp_path):
 
 
 def test_evaluate_reads_snapshots_listed_in_stats(tmp_path):
-    """Forward compatibility with the proposed `--snapshots` render option (docs/harness.md)."""
+    """The `--snapshots` contract (docs/harness.md): only the files stats.json lists, the final image replacing
+    its own snapshot, time from the per-pass record."""
     reference = np.full((8, 8, 3), 0.5, np.float32)
     imageio.write_exr(tmp_path / "ref.exr", reference)
     imageio.write_exr(tmp_path / "image.exr", reference * 1.1)
-    imageio.write_exr(tmp_path / "image_snap0008.exr", reference * 1.5)
+    imageio.write_exr(tmp_path / "image_snap00008.exr", reference * 1.5)
+    imageio.write_exr(tmp_path / "image_snap00016.exr", reference * 3.0)   # listed as the final one: not read
+    imageio.write_exr(tmp_path / "image_snap00004.exr", reference * 9.0)   # not listed: never read
     passes = [{"spp_total": 8 * (i + 1), "seconds": 0.1, "update_seconds": 0.01, "compile_seconds": 0.05 * (i == 0)}
               for i in range(2)]
-    (tmp_path / "stats.json").write_text(json.dumps({"spp": 16, "per_pass": passes, "provenance": {"host": "h"},
-                                                     "snapshots": [{"spp": 8, "file": "image_snap0008.exr"}]}))
+    snapshots = [{"spp": 8, "file": "image_snap00008.exr", "seconds": 0.06},
+                 {"spp": 16, "file": "image_snap00016.exr", "seconds": 0.17}]
+    stats = {"spp": 16, "budget_seconds_counted": 0.17, "per_pass": passes, "provenance": {"host": "h"},
+             "snapshots": snapshots}
+    (tmp_path / "stats.json").write_text(json.dumps(stats))
     result = harness.evaluate_run(str(tmp_path / "image.exr"), str(tmp_path / "stats.json"),
                                   str(tmp_path / "ref.exr"), str(tmp_path / "metrics.json"), {"method": "m"})
     assert [c["spp"] for c in result["curve"]] == [8, 16]
-    assert result["curve"][0]["mae"] > result["curve"][1]["mae"] > 0
+    assert result["curve"][0]["mae"] > result["curve"][1]["mae"] == result["mae"] > 0
     assert result["curve"][0]["render_seconds"] == pytest.approx(0.06)
+    assert [c["counted_seconds"] for c in result["curve"]] == [0.06, 0.17]
     assert result["render_seconds"] == pytest.approx(0.17)
     assert json.loads((tmp_path / "metrics.json").read_text())["method"] == "m"
+    # A listed name that leaves the render folder is refused.
+    stats["snapshots"][0]["file"] = "../image_snap00008.exr"
+    (tmp_path / "stats.json").write_text(json.dumps(stats))
+    with pytest.raises(GuidingError, match="not a file name"):
+        harness.evaluate_run(str(tmp_path / "image.exr"), str(tmp_path / "stats.json"), str(tmp_path / "ref.exr"),
+                             str(tmp_path / "metrics.json"))
 
 
 # ------------------------------------------------------------------------------- the workflow, end to end
@@ -305,9 +339,21 @@ def test_ci_workflow_runs_end_to_end(ci_run):
     assert sorted(et[["scene", "method"]].itertuples(index=False, name=None)) == [
         (scene, method) for scene in ("cornell", "door-ajar") for method in ("brdf", "ours", "ours-expected")]
     assert (et.spp > 16).all()  # a 1 s budget reaches more samples than the 16 spp of the equal-spp runs
+    # Convergence: one 32-spp render per method, its snapshots at 8 and 16 spp give the rest of the curve.
     conv = pd.read_csv(out / "tables" / "convergence.csv")
     assert sorted(conv[["method", "budget"]].itertuples(index=False, name=None)) == [
-        ("brdf", "spp16"), ("brdf", "spp8"), ("ours", "spp16"), ("ours", "spp8")]
+        (method, f"spp{spp}") for method in ("brdf", "ours") for spp in (16, 32, 8)]
+    conv_metrics = []
+    for method in ("brdf", "ours"):
+        folder = out / "renders" / "convergence" / "door-ajar" / method / "spp32" / "seed0"
+        stats = json.loads((folder / "stats.json").read_text())
+        assert [(s["spp"], s["file"]) for s in stats["snapshots"]] == [
+            (spp, f"image_snap{spp:05d}.exr") for spp in (8, 16, 32)]
+        assert all((folder / s["file"]).stat().st_mode & 0o777 == 0o644 for s in stats["snapshots"])
+        conv_metrics.append(json.loads((folder / "metrics.json").read_text()))
+        assert [c["spp"] for c in conv_metrics[-1]["curve"]] == [8, 16, 32]
+    series = figures.convergence_series(conv_metrics)  # what convergence.png draws: each render's whole curve
+    assert {label: len(points) for label, points in series["door-ajar"].items()} == {"BRDF": 3, "Ours": 3}
     for frame in (t1, t2, et, conv):
         assert _finite(frame, "mae") and _finite(frame, "relmse") and (frame.mae > 0).all()
         assert (frame.nonfinite_pixels == 0).all()

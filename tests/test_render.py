@@ -1,12 +1,15 @@
-"""The progressive renderer: budgets, per-pass statistics, and no recompilation across passes."""
+"""The progressive renderer: budgets, per-pass statistics, no recompilation across passes, snapshots, and the
+variance estimate and combination of iteration images."""
+
+import json
 
 import numpy as np
 import pytest
 
-
 from guiding.errors import GuidingError
+from guiding.imageio import read_exr
 from guiding.integrator import GuidedPathIntegrator
-from guiding.render import Budget, pass_seed, render
+from guiding.render import (Budget, combine_iterations, is_snapshot_spp, iteration_variance, pass_seed, render)
 
 
 def test_spp_budget_is_exact(cornell):
@@ -55,3 +58,114 @@ def test_hit_rate_is_a_fraction(cornell):
 def test_bad_budgets_are_rejected(kwargs):
     with pytest.raises(GuidingError):
         Budget(**kwargs)
+
+
+# ------------------------------------------------------------------------------------------- snapshots
+
+def test_snapshot_spp_are_pass_spp_times_powers_of_two():
+    assert [s for s in range(1, 130) if is_snapshot_spp(s, 8)] == [8, 16, 32, 64, 128]
+    assert [s for s in range(1, 20) if is_snapshot_spp(s, 3)] == [3, 6, 12]
+
+
+class FakeClock:
+    """Stands in for the renderer's clock (while the test's ``monkeypatch`` lasts): a pass of ``s`` spp takes
+    exactly ``cost_per_spp · s`` seconds, anything else only the time a test adds to :attr:`now`, and compilation
+    none (the kernel counts stay real)."""
+
+    def __init__(self, monkeypatch, cost_per_spp: float):
+        import types
+
+        import mitsuba as mi
+
+        import guiding.render as render_module
+
+        self.now = 0.0
+        real_render, real_costs = mi.render, render_module._kernel_costs
+
+        def timed_render(*args, spp, **kwargs):
+            image = real_render(*args, spp=spp, **kwargs)
+            self.now += cost_per_spp * spp
+            return image
+
+        monkeypatch.setattr(mi, "render", timed_render)
+        monkeypatch.setattr(render_module, "time", types.SimpleNamespace(perf_counter=lambda: self.now))
+        monkeypatch.setattr(render_module, "_kernel_costs", lambda history: (0.0, *real_costs(history)[1:]))
+
+
+def test_snapshots_show_the_running_mean_and_cost_no_budget(cornell, monkeypatch):
+    clock = FakeClock(monkeypatch, cost_per_spp=1e-3)
+    pass_images, snapshots = [], []
+
+    def snapshot(spp, image, seconds, spp_in_image):
+        snapshots.append((spp, image, seconds, spp_in_image))
+        clock.now += 1.0   # a slow disk: must show in no pass and cost no budget
+
+    result = render(cornell, GuidedPathIntegrator(), Budget(spp=44, pass_spp=4), snapshot=snapshot,
+                    on_pass=lambda stats, image: pass_images.append((stats.spp, image)))
+    assert [s[0] for s in snapshots] == [4, 8, 16, 32, 44]       # pass_spp·2^k, and the last pass
+    for spp, image, seconds, spp_in_image in snapshots:
+        done = pass_images[:sum(p.spp_total <= spp for p in result.passes)]
+        expected = sum(s * img for s, img in done) / sum(s for s, _ in done)
+        np.testing.assert_allclose(image, expected, rtol=1e-9, atol=1e-12)
+        assert spp_in_image == spp and seconds == pytest.approx(1e-3 * spp)
+    np.testing.assert_allclose(result.image, snapshots[-1][1].astype(np.float32))
+    assert [p.seconds for p in result.passes] == pytest.approx([4e-3] * 11)
+    assert all(p.update_seconds == 0 for p in result.passes) and result.counted_seconds() == pytest.approx(0.044)
+    # Nor does the bookkeeping launch a kernel that a pass would count.
+    assert len({p.kernels_launched for p in result.passes}) == 1
+    assert all(p.kernels_compiled == 0 for p in result.passes[1:])
+
+
+def test_render_command_writes_snapshots_listed_in_stats(tmp_path):
+    from guiding.cli import main
+
+    out = tmp_path / "run"
+    assert main(["render", "--scene", "cornell", "--scale", "0.125", "--method", "sdtree", "--spp", "40",
+                 "--snapshots", "--combine", "inverse-variance", "--variant", "llvm_ad_rgb", "--quiet",
+                 "--out", str(out)]) == 0
+    stats = json.loads((out / "stats.json").read_text())
+    assert [(s["spp"], s["file"]) for s in stats["snapshots"]] == [
+        (8, "image_snap00008.exr"), (16, "image_snap00016.exr"), (32, "image_snap00032.exr"),
+        (40, "image_snap00040.exr")]
+    assert sorted(p.name for p in out.glob("image_snap*")) == [s["file"] for s in stats["snapshots"]]
+    for path in out.iterdir():
+        assert path.stat().st_mode & 0o777 == 0o644, path   # not mkstemp's 0600
+    np.testing.assert_array_equal(read_exr(out / "image_snap00040.exr"), read_exr(out / "image.exr"))
+    assert stats["combine"] == "inverse-variance" and stats["snapshots"][-1]["seconds"] == pytest.approx(
+        stats["budget_seconds_counted"])
+    assert [(it["spp_start"], it["spp_end"]) for it in stats["iterations"]] == [(0, 8), (8, 40)]
+
+
+def test_unknown_combination_is_rejected(cornell):
+    with pytest.raises(GuidingError, match="unknown combination"):
+        render(cornell, GuidedPathIntegrator(), Budget(spp=4), combine="median")
+
+
+# ---------------------------------------------------------------------------------- iteration variance
+
+def test_iteration_variance_estimates_the_variance_of_the_iteration_image():
+    """Passes of unequal spp (the last pass of an spp budget is shorter): over many simulated iterations, the
+    estimate averages to the true variance of the spp-weighted mean, σ²/S, pixel by pixel."""
+    rng = np.random.default_rng(3)
+    sigma2 = rng.uniform(0.5, 2.0, size=(4, 5, 3))     # per-sample variance of each pixel and channel
+    spps = np.array([8, 8, 8, 3])
+    estimates, means = [], []
+    for _ in range(4000):
+        passes = [1.0 + rng.normal(0, np.sqrt(sigma2 / s)) for s in spps]
+        first = sum(s * x for s, x in zip(spps, passes))
+        second = sum(s * x * x for s, x in zip(spps, passes))
+        estimates.append(iteration_variance(first, second, spps.sum(), len(spps)))
+        means.append((first / spps.sum()).mean())
+    true = float(np.mean(sigma2 / spps.sum()))
+    spread = np.std(estimates) / np.sqrt(len(estimates))
+    assert abs(np.mean(estimates) - true) < 4 * spread and spread < 0.02 * true
+    assert iteration_variance(first, second, spps.sum(), 1) is None     # one pass: no estimate
+
+
+def test_inverse_variance_combination_weights():
+    images = [np.full((2, 2, 3), v) for v in (1.0, 2.0, 4.0)]
+    image, weights = combine_iterations(images, [None, 0.5, 0.25])
+    assert weights == pytest.approx([0.0, 1 / 3, 2 / 3])
+    np.testing.assert_allclose(image, 2.0 / 3 + 8.0 / 3)
+    image, weights = combine_iterations(images, [None, None, None])   # no estimate: the last image alone
+    assert weights == [0.0, 0.0, 1.0] and (image == 4.0).all()

@@ -11,6 +11,7 @@ from guiding.guides.sdtree import (SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceF
                                    SDTreeGuide, STree, doubling_schedule, stree_locate)
 from guiding.integrator import GuidedPathIntegrator
 from guiding.validation import Z_LIMIT, pass_means, z_scores
+from test_render import FakeClock
 
 
 # ================================================================================================ helpers
@@ -456,3 +457,147 @@ def test_budget_makes_the_last_iteration_run_to_the_end_without_learning(cornell
     # The final iteration (passes after 24 spp: what a renderer keeps for Müller's final image) records nothing.
     assert guide.iteration_start_spp == 24 and guide.iteration_end_spp == 64 and not guide.learns
     assert all(s["splat_seconds"] == 0 for s in stats[3:])
+
+
+def test_iterations_in_the_render_result(cornell):
+    """Per-iteration statistics (stats.json's `iterations`): the schedule's spp ranges, the hit rate of their
+    passes, and the structure of the trees each training iteration built."""
+    from guiding.render import Budget, render
+
+    guide = SDTreeGuide(c=300, base_spp=8)
+    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128, pass_spp=8), seed=3)
+    its = result.iterations
+    assert [(it.spp_start, it.spp_end, it.passes) for it in its] == [(0, 8, 1), (8, 24, 2), (24, 56, 4), (56, 128, 9)]
+    for it in its:
+        mine = [p for p in result.passes if it.spp_start < p.spp_total <= it.spp_end]
+        assert it.hit_rate == pytest.approx(sum(p.hit_rate * p.spp for p in mine) / it.spp)
+        assert it.seconds == pytest.approx(sum(p.counted_seconds for p in mine))
+        assert (it.variance is None) == (it.passes < 2)
+    for it, end in zip(its[:3], (8, 24, 56)):   # training iterations: the refinement they ended with
+        assert it.guide["iteration_done"] and it.guide["refine_seconds"] > 0 and it.guide["iteration_start_spp"] == end
+        for key in ("stree_leaves", "stree_max_depth", "dtree_nodes_total", "dtree_nodes_mean", "dtree_nodes_max",
+                    "memory_bytes", "vertices_recorded"):
+            assert key in it.guide, key
+    assert its[2].guide["stree_leaves"] > its[0].guide["stree_leaves"]
+    assert its[2].guide["dtree_nodes_max"] > its[0].guide["dtree_nodes_max"]
+    assert [it.weight for it in its] == [0, 0, 0, 1]     # combine="last": the final iteration alone
+    assert result.training_stopped["spp"] == 56      # the final iteration (the guide's schedule) records nothing
+    summary = result.summary()
+    assert [it["spp"] for it in summary["iterations"]] == [8, 16, 32, 72] and summary["combine"] == "last"
+
+
+# ===================================================================================== seconds budgets
+@pytest.mark.parametrize("seconds, stop_spp, final_spp", [
+    # 1 ms per spp, iterations of 8, 16, 32, ... spp. With 0.5 s: after 248 spp (0.248 s) the next iteration
+    # (256 spp, 0.256 s) would not fit in the 0.252 s left; passes of 8 spp go on until 0.504 s.
+    (0.5, 248, 504),
+    # With 0.6 s, it fits (0.256 <= 0.352); after 504 spp the next (512 spp) would not fit in 0.096 s.
+    (0.6, 504, 600),
+])
+def test_seconds_budget_stops_training_when_the_next_iteration_would_not_fit(cornell, monkeypatch, seconds,
+                                                                              stop_spp, final_spp):
+    from guiding.render import Budget, render
+
+    FakeClock(monkeypatch, cost_per_spp=1e-3)   # 1 ms per spp, and compilation free
+    guide = SDTreeGuide(c=300, base_spp=8)
+    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(seconds=seconds, pass_spp=8), seed=1)
+    assert result.training_stopped["spp"] == stop_spp
+    assert result.training_stopped["seconds"] == pytest.approx(stop_spp * 1e-3)
+    assert result.training_stopped["next_iteration_spp"] == stop_spp + 8
+    assert result.spp == final_spp and not guide.learns
+    # The iteration that ended at the stop runs to the end with the frozen guide: one image, nothing discarded.
+    last = result.iterations[-1]
+    assert (last.spp_start, last.spp_end) == ((stop_spp - 8) // 2, final_spp)
+    assert result.spp_in_image == last.spp and last.weight == 1
+    frozen = [p for p in result.passes if p.spp_total > stop_spp]
+    assert frozen and all(p.guide["splat_seconds"] == 0 and not p.guide["iteration_done"] for p in frozen)
+    assert {p.guide["stree_leaves"] for p in frozen} == {result.passes[stop_spp // 8 - 1].guide["stree_leaves"]}
+
+
+def test_seconds_budget_training_decisions_match_the_measured_times(cornell):
+    """Real timings: every iteration boundary's decision, recomputed from the per-pass record (seconds per spp of
+    the iteration that ended × the next iteration's base_spp·2^(k+1) spp, against the budget left)."""
+    from guiding.render import Budget, render
+
+    budget = Budget(seconds=1.5, pass_spp=8)
+    guide = SDTreeGuide(c=300, base_spp=8)
+    result = render(cornell, GuidedPathIntegrator(guide=guide), budget, seed=2)
+    counted, start, stop = 0.0, 0, None
+    for i, p in enumerate(result.passes):
+        counted += p.counted_seconds
+        if p.guide["iteration_done"]:
+            ended = result.passes[start:i + 1]
+            per_spp = sum(q.counted_seconds for q in ended) / sum(q.spp for q in ended)
+            next_spp = 8 * 2 ** (p.guide["iteration"] + 1)
+            if next_spp * per_spp > budget.seconds - counted:
+                stop = i
+                break
+            start = i + 1
+    if stop is None:   # every iteration was let start; the budget then ran out inside the last one
+        assert result.training_stopped is None and guide.learns
+    else:              # the iteration that ended there ran to the end with the frozen guide
+        assert result.training_stopped["spp"] == result.passes[stop].spp_total and not guide.learns
+        assert all(not p.guide["iteration_done"] for p in result.passes[stop + 1:])
+    first = result.passes[start]
+    assert result.iterations[-1].spp_start == first.spp_total - first.spp
+    assert result.spp_in_image == result.spp - result.iterations[-1].spp_start
+    assert result.counted_seconds() >= budget.seconds > result.counted_seconds() - result.passes[-1].counted_seconds
+
+
+# ============================================================================ inverse-variance combination
+def _iteration_images(pass_records):
+    """(spp, mean image, variance of the mean) of each iteration, from (spp, iteration, image) of its passes:
+    the spp-weighted mean, and the spread of the pass images around it."""
+    out = []
+    for k in sorted({it for _, it, _ in pass_records}):
+        spp = np.array([s for s, it, _ in pass_records if it == k], dtype=np.float64)
+        images = np.stack([img for _, it, img in pass_records if it == k])
+        total = spp.sum()
+        mean = np.tensordot(spp, images, axes=1) / total
+        if len(spp) < 2:
+            out.append((total, mean, None))
+            continue
+        deviations = np.tensordot(spp, (images - mean) ** 2, axes=1) / (len(spp) - 1)
+        out.append((total, mean, float((deviations / total).mean())))
+    return out
+
+
+def test_inverse_variance_image_is_the_weighted_mean_of_the_last_four_iterations(cornell):
+    from guiding.render import Budget, render
+
+    records = []
+    guide = SDTreeGuide(c=300, base_spp=4)
+    # Iterations of 4, 8, 16, 32, 64 and (to the end) 128 spp: passes 1, 2, 4, 8, 16, 32.
+    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=252, pass_spp=4), seed=6,
+                    combine="inverse-variance",
+                    on_pass=lambda stats, image: records.append((stats.spp, stats.guide["iteration"], image)))
+    iterations = _iteration_images(records)
+    assert [int(spp) for spp, _, _ in iterations] == [4, 8, 16, 32, 64, 128]
+    inverse = [1 / v for _, _, v in iterations[-4:]]
+    weights = np.array(inverse) / sum(inverse)
+    expected = sum(w * img for w, (_, img, _) in zip(weights, iterations[-4:]))
+    np.testing.assert_allclose(result.image, expected, rtol=1e-5, atol=1e-7)
+    assert [it.weight for it in result.iterations] == pytest.approx([0, 0, *weights], rel=1e-6)
+    assert [it.variance for it in result.iterations[1:]] == pytest.approx([v for _, _, v in iterations[1:]], rel=1e-6)
+    assert result.spp_in_image == 4 + 8 + 16 + 32 + 64 + 128 - 12
+    # Able to fail: the combination is far from the last iteration alone.
+    assert np.abs(result.image - iterations[-1][1]).mean() > 100 * 1e-5 * np.abs(expected).mean()
+
+
+def test_inverse_variance_combination_matches_mitsuba_path(cornell, cornell_reference):
+    """Unbiased in practice: the image means of independent renders agree with Mitsuba's `path` integrator. (The
+    weights come from the same samples as the images, a correlation that a strict proof would have to rule out;
+    this bounds its effect.)"""
+    from guiding.render import Budget, render
+
+    renders = 24
+    means = []
+    for seed in range(renders):
+        result = render(cornell, GuidedPathIntegrator(guide=SDTreeGuide(c=300, base_spp=4)),
+                        Budget(spp=60, pass_spp=4), seed=100 + seed, combine="inverse-variance")
+        assert sum(it.weight > 0 for it in result.iterations) == 3   # iterations of 8, 16 and 32 spp
+        means.append(result.image.astype(np.float64).mean(axis=(0, 1)))
+    means = np.array(means)
+    z = z_scores(means, cornell_reference)
+    assert (z < Z_LIMIT).all(), f"z-scores {z}, means {means.mean(0)} vs {cornell_reference.mean(0)}"
+    assert (means.std(axis=0, ddof=1) / renders ** 0.5 < 0.01 * cornell_reference.mean(axis=0)).all()

@@ -714,8 +714,9 @@ class _TreeGuide(Guide):
 
     def _forest_stats(self, forest: Forest, prefix: str) -> dict:
         nodes = forest.nodes_per_tree()
-        return {f"{prefix}_trees": forest.n_trees, f"{prefix}_nodes_mean": float(nodes.mean()),
-                f"{prefix}_nodes_max": int(nodes.max()), f"{prefix}_max_depth": forest.max_depth()}
+        return {f"{prefix}_trees": forest.n_trees, f"{prefix}_nodes_total": forest.n_nodes,
+                f"{prefix}_nodes_mean": float(nodes.mean()), f"{prefix}_nodes_max": int(nodes.max()),
+                f"{prefix}_max_depth": forest.max_depth()}
 
     def _memory_bytes(self) -> int:
         total = self._log_bytes
@@ -741,7 +742,9 @@ class SDTreeGuide(_TreeGuide):
 
     Schedule: :meth:`update` is called after every pass; it refines when the spp done reach the end of the
     current iteration. ``update`` reports ``iteration_done`` for the pass that closed an iteration: a renderer that
-    keeps only the last iteration (Müller's final image) restarts its accumulation there.
+    keeps only the last iteration (Müller's final image) restarts its accumulation there. Under a seconds budget
+    the guide has no end: the renderer asks :meth:`iteration_spp` at each boundary and calls :meth:`stop_training`
+    when the next iteration would not fit (:mod:`guiding.render`).
     """
 
     name = "sdtree"
@@ -775,12 +778,19 @@ class SDTreeGuide(_TreeGuide):
         self.iteration_start_spp = spp_start
         self.iteration_end_spp = spp_start + max(length, 1)
 
+    def iteration_spp(self) -> int:
+        """Length in spp of the iteration the next pass belongs to (a renderer under a seconds budget checks
+        that it fits before letting it run)."""
+        return self.iteration_end_spp - self.iteration_start_spp
+
     def stop_training(self) -> None:
         """Freeze the distributions (e.g. when a time budget leaves no room for another iteration): no more
-        refinement and no more recording (the next pass traces a kernel without the recording code)."""
+        refinement and no more recording (the next pass traces a kernel without the recording code). The
+        current iteration becomes the final one and runs to the end of the budget, so it has no end spp."""
         self.is_final_iteration = True
         self.learns = False
         self._logs.clear()
+        self.iteration_end_spp = None
 
     # ------------------------------------------------------------------------------------ host side
     def prepare(self, scene: mi.Scene) -> None:
@@ -844,6 +854,7 @@ class SDTreeGuide(_TreeGuide):
 
     def _structure_stats(self) -> dict:
         stats = {"iteration": self.iteration, "stree_nodes": self.stree.n_nodes, "stree_leaves": self.stree.n_leaves,
+                 "stree_max_depth": max(self.stree.depth),
                  "memory_bytes": self._memory_bytes() + 16 * self.stree.n_nodes,
                  "iteration_start_spp": self.iteration_start_spp, "iteration_end_spp": self.iteration_end_spp,
                  "final_iteration": self.is_final_iteration}
