@@ -9,7 +9,10 @@ an iteration there and the next pass starts a new image; the final image is then
 * ``"inverse-variance"``: the mean of the last :data:`COMBINED_ITERATIONS` iterations weighted by the inverse of
   each one's estimated variance (Müller 2019, "Practical Path Guiding in Production"; the same number of
   iterations as his implementation). An iteration's variance is estimated from the spread of its pass images
-  (:func:`iteration_variance`), so an iteration of a single pass has no estimate and no weight.
+  (:func:`iteration_variance`; Müller's implementation accumulates squared samples, which ``mi.render`` does not
+  return), so an iteration of a single pass has no estimate and no weight. The weights come from the same samples
+  as the images, so the combination is consistent rather than strictly unbiased; the tests bound the effect
+  against Mitsuba's ``path`` integrator.
 
 Every iteration's spp, time, hit rate, variance, weight and the guide's statistics at its end are in
 :attr:`RenderResult.iterations`.
@@ -195,8 +198,8 @@ def iteration_variance(first: np.ndarray, second: np.ndarray, spp: int, passes: 
 def combine_iterations(images: list[np.ndarray], variances: list[float | None]) -> tuple[np.ndarray, list[float]]:
     """``(Σ w_k I_k, [w_k])``: iteration images weighted by the inverse of their variance, ``w_k ∝ 1/V_k``,
     normalised to sum to one. An image without a variance estimate gets weight 0; when none has one, the last
-    image alone is returned (weight 1). A zero variance (a black image) is floored, so such images share the
-    weight equally."""
+    image alone is returned (weight 1). A zero variance (a black image) is floored at 1e-300: images with zero
+    variance then share all the weight equally."""
     inverse = np.array([0.0 if v is None else 1.0 / max(v, 1e-300) for v in variances])
     if not inverse.any():
         inverse[-1] = 1.0
