@@ -8,12 +8,31 @@ lift ``cos θ = 1 − r²`` (Mitsuba's ``square_to_uniform_hemisphere``), each s
 :class:`NormalBins` groups surface normals for the memo tables (N, M and the Expected SARSA value per
 (cell, normal bin)). It is a cube map with an odd resolution, so the axis directions — the normals of walls,
 floors and boxes — are bin centres, where the memoised values are exact.
+
+Both accept any vector: :func:`safe_normalize` rescales by the largest component before normalising, so tiny
+(even denormal) and huge vectors keep their direction, and the zero vector or a non-finite one falls back to +z.
 """
 
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+
+
+def safe_normalize(d: mi.Vector3f) -> mi.Vector3f:
+    """``d / |d|`` for any finite non-zero ``d``, and +z for the zero vector or a non-finite one.
+
+    ``dr.normalize`` alone fails at both ends of the float range: ``|d|²`` underflows to 0 for ``|d| < 1e-19``
+    (the result is then NaN or a wrong direction) and overflows to infinity for ``|d| > 1e19``. Dividing by the
+    largest component first brings ``|d|`` into [1, √3].
+    """
+    d = mi.Vector3f(d)
+    largest = dr.maximum(dr.maximum(dr.abs(d.x), dr.abs(d.y)), dr.abs(d.z))
+    # Three divisions, not ``d / largest``: Dr.Jit computes that as ``d · (1/largest)``, and 1/largest is denormal
+    # for |d| > 8.5e37, which the CPU backend flushes to zero.
+    unit = dr.normalize(mi.Vector3f(d.x / largest, d.y / largest, d.z / largest))
+    usable = (largest > 0) & dr.isfinite(largest) & dr.isfinite(unit.x) & dr.isfinite(unit.y) & dr.isfinite(unit.z)
+    return dr.select(usable, unit, mi.Vector3f(0, 0, 1))
 
 
 class SphereBins:
@@ -27,10 +46,9 @@ class SphereBins:
         self.solid_angle = 2 * dr.pi / (resolution * resolution)
 
     def index(self, d: mi.Vector3f) -> mi.UInt32:
-        """Bin of world direction ``d`` (need not be normalised; the zero vector lands in bin 0)."""
+        """Bin of world direction ``d`` (any length; the zero vector and non-finite input land in a pole bin)."""
         lower = d.z < 0
-        local = dr.normalize(mi.Vector3f(d.x, d.y, dr.abs(d.z)))
-        local = dr.select(dr.isfinite(local.x), local, mi.Vector3f(0, 0, 1))
+        local = safe_normalize(mi.Vector3f(d.x, d.y, dr.abs(d.z)))
         uv = mi.warp.uniform_hemisphere_to_square(local)
         n = self.resolution
         cell = dr.clip(mi.Vector2i(dr.floor(uv * n)), 0, n - 1)
@@ -59,6 +77,8 @@ class NormalBins:
         self.count = 6 * resolution * resolution
 
     def index(self, n: mi.Vector3f) -> mi.UInt32:
+        """Bin of normal ``n`` (any length; the zero vector and non-finite input land in the +z face's centre)."""
+        n = safe_normalize(n)
         a = dr.abs(n)
         axis = dr.select((a.x >= a.y) & (a.x >= a.z), 0, dr.select(a.y >= a.z, 1, 2))
         major = dr.select(axis == 0, n.x, dr.select(axis == 1, n.y, n.z))

@@ -51,6 +51,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..directions import safe_normalize
 from .base import Guide, NoPathState
 
 #: Largest float32 below one: samples and coordinates are clamped to [0, ONE_MINUS_EPS].
@@ -66,7 +67,11 @@ SPLIT_GROW = "grow"        # split-only: keep every existing node, subdivide lea
 #  Direction <-> equal-area cylindrical square
 # ===================================================================================================================
 def dir_to_uv(d):
-    """World direction → ``(u, v) ∈ [0, 1)²`` with ``u = (cos θ + 1)/2``, ``v = φ / 2π``."""
+    """World direction → ``(u, v) ∈ [0, 1)²`` with ``u = (cos θ + 1)/2``, ``v = φ / 2π``.
+
+    ``d`` may have any length: ``u`` reads ``cos θ`` off the unit vector (the zero vector and non-finite input,
+    which have no direction, map to +z), so no input gives a point outside the square or NaN."""
+    d = safe_normalize(d)
     u = dr.clip((d.z + 1) * 0.5, 0, ONE_MINUS_EPS)
     v = dr.atan2(d.y, d.x) * (0.5 / dr.pi)
     v = dr.clip(dr.select(v < 0, v + 1, v), 0, ONE_MINUS_EPS)

@@ -1,0 +1,550 @@
+"""Stress cases: numerical stability and bad input (the grid guide and the SD-tree).
+
+A guided estimator divides by learned densities, so one zero, denormal or NaN in a table could poison a whole
+sweep unnoticed. Each case here drives one part of the system with hostile input and checks that what comes out is
+finite, valid and correctly weighted:
+
+- ``directions``: the direction ↔ bin maps (the concentric hemisphere pair of :mod:`guiding.directions`, its cube
+  map of normals, and the SD-tree's cylindrical map) at poles, seams and the hemisphere boundary, with degenerate
+  and unnormalised input, and the solid angle of every bin;
+- ``tables``: table updates of both guides with all-zero, huge, denormal, NaN and infinite accumulators;
+- ``samplers``: densities and weights at extreme samples and at the worst acceptance rate a table can produce;
+- ``targets``: learning targets from extreme radiance, zero or tiny densities, and paths ending at every depth;
+- ``scenes``: whole renders of hostile scenes built with ``mi.load_dict``;
+- ``memory``, ``drift``, ``determinism`` and ``bad-input``: the refusal of oversized tables, float32 accumulation
+  drift, run-to-run differences, and the command line's answers to bad input.
+
+A case is a function registered with :func:`case`: it raises :class:`StressFailure` when a check fails and returns
+the figures it measured. ``tests/test_stress_*.py`` run the cases under pytest and ``python -m guiding stress``
+runs them all and writes ``results/stress.md`` (:func:`run_cases`, :func:`write_report`), so no check is written
+twice. A Mitsuba variant must be set before a case runs.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: float32 machine epsilon: the relative resolution every float32 table and direction has.
+EPS32 = float(np.finfo(np.float32).eps)
+#: Smallest normal float32. Dr.Jit's CPU backend flushes denormals to zero (FTZ/DAZ) in kernels that run on its
+#: worker threads, but not in small ones run on the calling thread: a denormal input is zero or not depending on
+#: the array's size, so the checks treat denormal components as zero (a vector made of them has no direction).
+TINY32 = float(np.finfo(np.float32).tiny)
+
+GROUPS = ("directions", "tables", "samplers", "targets", "scenes", "memory", "drift", "determinism", "bad-input")
+
+
+# =====================================================================================================================
+#  Registry
+# =====================================================================================================================
+class StressFailure(AssertionError):
+    """A stress check failed; the message says what was measured and what was expected."""
+
+
+def check(condition, message: str) -> None:
+    """Raise :class:`StressFailure` with ``message`` unless ``condition`` holds."""
+    if not condition:
+        raise StressFailure(message)
+
+
+@dataclass(frozen=True)
+class Case:
+    """One stress case.
+
+    Parameters:
+      name: the case's name (the function name with dashes).
+      group: one of :data:`GROUPS`.
+      checks: one line saying what the case checks (the report's description).
+      run: the function; returns the measured figures, raises :class:`StressFailure` on a failed check.
+      covered_by: a test outside ``tests/test_stress_*.py`` that already runs this check; the stress tests skip
+        the case then, and the report says where it is tested.
+    """
+
+    name: str
+    group: str
+    checks: str
+    run: Callable[[], dict]
+    covered_by: str | None = None
+
+
+#: Every case, in registration order (the report's order).
+CASES: dict[str, Case] = {}
+
+
+def case(group: str, checks: str, covered_by: str | None = None):
+    """Register the decorated function as a case of ``group`` (see :class:`Case` for the parameters)."""
+    if group not in GROUPS:
+        raise ValueError(f"unknown stress group '{group}'")
+
+    def register(function: Callable[[], dict]) -> Callable[[], dict]:
+        name = function.__name__.replace("_", "-")
+        CASES[name] = Case(name, group, checks, function, covered_by)
+        return function
+
+    return register
+
+
+@dataclass
+class Outcome:
+    """What running a case gave: ``status`` is ``pass``, ``FAIL`` (a check failed) or ``ERROR`` (an exception)."""
+
+    case: Case
+    status: str
+    seconds: float
+    figures: dict = field(default_factory=dict)
+    message: str = ""
+
+
+def run_case(name: str) -> Outcome:
+    """Run case ``name`` and catch what it raises."""
+    stress_case = CASES[name]
+    start = time.perf_counter()
+    try:
+        figures = stress_case.run() or {}
+        status, message = "pass", ""
+    except StressFailure as failure:
+        figures, status, message = {}, "FAIL", str(failure)
+    except Exception as error:  # a crash is an outcome too: the report must still list the case
+        figures, status = {}, "ERROR"
+        message = f"{type(error).__name__}: {error} ({traceback.extract_tb(error.__traceback__)[-1].name})"
+    return Outcome(stress_case, status, time.perf_counter() - start, figures, message)
+
+
+def run_cases(names: list[str] | None = None, progress: Callable[[Outcome], None] | None = None) -> list[Outcome]:
+    """Run the named cases (all by default) in registration order; ``progress`` sees each outcome."""
+    outcomes = []
+    for name in names or list(CASES):
+        outcome = run_case(name)
+        if progress is not None:
+            progress(outcome)
+        outcomes.append(outcome)
+    return outcomes
+
+
+# =====================================================================================================================
+#  Directions: geometry helpers (float64 references computed from the maps' float32 output)
+# =====================================================================================================================
+def _vectors(array: np.ndarray):
+    """An ``(n, 3)`` NumPy array as a ``mi.Vector3f`` (a memory array, so no value is baked into a kernel)."""
+    import mitsuba as mi
+
+    array = np.asarray(array, dtype=np.float32).reshape(-1, 3)
+    return mi.Vector3f(*(np.ascontiguousarray(array[:, i]) for i in range(3)))
+
+
+def to_numpy(vector) -> np.ndarray:
+    """A Dr.Jit 3-vector (or 2-point) as an ``(n, 3)`` (or ``(n, 2)``) float64 array."""
+    return np.array(vector, dtype=np.float64).T.reshape(-1, len(vector))
+
+
+def unit(d: np.ndarray) -> np.ndarray:
+    """Reference normalisation in float64 (denormal components flushed to zero, see :data:`TINY32`, then scaled
+    by the largest component); rows without a direction (zero or non-finite) are NaN."""
+    d = np.asarray(d, dtype=np.float64).reshape(-1, 3)
+    d = np.where(np.abs(d) < TINY32, 0.0, d)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        largest = np.max(np.abs(d), axis=1, keepdims=True)
+        scaled = d / largest
+        out = scaled / np.linalg.norm(scaled, axis=1, keepdims=True)
+    out[~np.isfinite(out).all(axis=1)] = np.nan
+    return out
+
+
+def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle between unit rows (float64, accurate for small angles)."""
+    return 2 * np.arcsin(np.clip(np.linalg.norm(a - b, axis=1) / 2, 0, 1))
+
+
+def boundary_samples(steps: int) -> np.ndarray:
+    """``4·steps`` positions walking once around the unit square (the boundary of a bin in its own coordinates)."""
+    t = np.arange(steps) / steps
+    zero, one = np.zeros(steps), np.ones(steps)
+    return np.concatenate([np.stack([t, zero], 1), np.stack([one, t], 1), np.stack([1 - t, one], 1),
+                           np.stack([zero, 1 - t], 1)])
+
+
+@dataclass
+class BinGeometry:
+    """Float64 measurements of the bins of a direction map, from the float32 directions the map produces.
+
+    ``solid_angle``: the area of each bin (spherical polygon through ``4·steps`` boundary points, Richardson-
+    extrapolated from ``steps/2`` to remove the chords' O(1/steps²) error); ``perimeter``: its boundary length;
+    ``centre``: the unit direction at the bin's centre; ``radius``: the largest angle from the centre to the
+    boundary; ``spacing``: the largest angle between neighbouring boundary points (how far the true boundary can
+    lie beyond ``radius``).
+    """
+
+    solid_angle: np.ndarray
+    perimeter: np.ndarray
+    centre: np.ndarray
+    radius: np.ndarray
+    spacing: np.ndarray
+
+
+def _polygon(direction_of, bins: np.ndarray, steps: int):
+    """Fan areas and boundary of the spherical polygons of ``bins`` with ``4·steps`` boundary points."""
+    import mitsuba as mi
+
+    samples = boundary_samples(steps)
+    m = len(samples)
+    k = np.repeat(bins, m).astype(np.uint32)
+    s = np.tile(samples, (len(bins), 1))
+    points = unit(to_numpy(direction_of(mi.UInt32(k), mi.Point2f(s[:, 0], s[:, 1])))).reshape(len(bins), m, 3)
+    centre = unit(to_numpy(direction_of(mi.UInt32(bins.astype(np.uint32)), mi.Point2f(0.5, 0.5))))
+    a, b, c = points, np.roll(points, -1, axis=1), centre[:, None, :]
+    # Van Oosterom & Strackee: the solid angle of the triangle (c, a, b).
+    triple = np.einsum("kmi,kmi->km", c, np.cross(a, b))
+    denominator = 1 + np.einsum("kmi,kmi->km", a, b) + np.einsum("kmi,kmi->km", b, c) + np.einsum("kmi,kmi->km", c, a)
+    area = np.abs(2 * np.arctan2(triple, denominator).sum(axis=1))
+    edges = angle_between(a.reshape(-1, 3), b.reshape(-1, 3)).reshape(len(bins), m)
+    radius = angle_between(points.reshape(-1, 3), np.repeat(centre, m, axis=0)).reshape(len(bins), m).max(axis=1)
+    return area, edges.sum(axis=1), centre, radius, edges.max(axis=1)
+
+
+def bin_geometry(direction_of, bins, steps: int = 32, chunk_points: int = 1 << 20) -> BinGeometry:
+    """Measure the bins ``bins`` (indices) of ``direction_of(k, sample ∈ [0,1]²) → direction``, in chunks of at
+    most ``chunk_points`` boundary points (memory stays near 100 MB whatever the bin count)."""
+    bins = np.asarray(bins, dtype=np.int64)
+    per_chunk = max(1, chunk_points // (4 * steps))
+    parts = []
+    for start in range(0, len(bins), per_chunk):
+        chunk = bins[start:start + per_chunk]
+        coarse = _polygon(direction_of, chunk, steps // 2)[0]
+        fine, perimeter, centre, radius, spacing = _polygon(direction_of, chunk, steps)
+        parts.append(((4 * fine - coarse) / 3, perimeter, centre, radius, spacing))
+    return BinGeometry(*(np.concatenate(column) for column in zip(*parts)))
+
+
+def equal_area_excess(geometry: BinGeometry, expected: float) -> np.ndarray:
+    """Each bin's |solid angle − expected| in units of ``perimeter·ε₃₂``: the area a shift of the boundary by the
+    float32 resolution of a unit vector sweeps. Values ≤ 1 mean "equal to float precision"."""
+    return np.abs(geometry.solid_angle - expected) / (geometry.perimeter * EPS32)
+
+
+def containment_violations(index_of, count: int, geometry: BinGeometry, directions: np.ndarray,
+                           lower_from: int | None = None) -> list[str]:
+    """Directions that a map sends to an invalid bin or to a bin that does not contain them.
+
+    Parameters:
+      index_of: the map, ``mi.Vector3f → mi.UInt32``.
+      count: the number of bins.
+      geometry: :func:`bin_geometry` of all bins.
+      directions: ``(n, 3)`` float32-representable inputs; rows without a direction (zero, NaN, Inf) must only
+        land in a valid bin.
+      lower_from: for the sphere bins, the first bin of the z < 0 hemisphere (``D²``): a direction with z < 0 must
+        land at or above it, one with z ≥ 0 below it (a denormal z may land on either side: it can be flushed).
+    """
+    directions = np.asarray(directions, dtype=np.float32).reshape(-1, 3)
+    k = np.array(index_of(_vectors(directions)), dtype=np.int64)
+    problems = []
+    invalid = (k < 0) | (k >= count)
+    problems += [f"{tuple(d)} -> bin {b} (of {count})" for d, b in zip(directions[invalid], k[invalid])]
+    if lower_from is not None:
+        wrong_side = ~invalid & ((directions[:, 2] < 0) != (k >= lower_from)) & (np.abs(directions[:, 2]) >= TINY32)
+        problems += [f"{tuple(d)} -> bin {b} on the other hemisphere" for d, b in
+                     zip(directions[wrong_side], k[wrong_side])]
+    d = unit(directions)
+    has_direction = np.isfinite(d).all(axis=1) & ~invalid
+    kk = k[has_direction]
+    angle = angle_between(d[has_direction], geometry.centre[kk])
+    # The bin's boundary is known at sampled points: it can lie `spacing` beyond them, plus float32 rounding.
+    reach = geometry.radius[kk] + geometry.spacing[kk] + 8 * EPS32
+    outside = angle > reach
+    problems += [f"{tuple(x)} -> bin {b}: {a:.3g} rad from its centre, bin radius {r:.3g}" for x, b, a, r in
+                 zip(directions[has_direction][outside], kk[outside], angle[outside], reach[outside])]
+    return problems
+
+
+def special_directions() -> np.ndarray:
+    """Poles, both seams of the maps, the hemisphere boundary and its neighbours, in float32.
+
+    The concentric map's pieces meet on the square's diagonals (azimuths π/4 + k·π/2) and axes; the cylindrical
+    map's seam is azimuth 0 (y = ±0 with x > 0); the hemispheres meet at z = 0 (both signed zeros)."""
+    rows = [(0, 0, 1), (0, 0, -1)]
+    tiny = [0.0, -0.0, 1e-7, -1e-7, 1e-30, -1e-30, 1e-40, -1e-40, 1e-45, -1e-45]
+    elevations = [*tiny, 0.5, -0.5, 0.999, -0.999, 1 - 1e-7, -(1 - 1e-7)]
+    for azimuth in np.arange(16) * np.pi / 8:
+        for z in elevations:
+            r = np.sqrt(max(0.0, 1 - z * z))
+            rows.append((r * np.cos(azimuth), r * np.sin(azimuth), z))
+    for x in (1.0, -1.0):         # the cylindrical seam and its mirror, approached from both sides
+        for y in (0.0, -0.0, 1e-7, -1e-7, 1e-30, -1e-30, 1e-45, -1e-45):
+            for z in (0.0, -0.0, 0.5, -0.5):
+                rows.append((x, y, z))
+    return np.array(rows, dtype=np.float32)
+
+
+def degenerate_inputs() -> np.ndarray:
+    """Vectors without a direction (zero, NaN, ±Inf in any component) and extreme but valid ones."""
+    nan, inf = float("nan"), float("inf")
+    rows = [(0, 0, 0), (-0.0, -0.0, -0.0)]
+    for bad in (nan, inf, -inf):
+        rows += [(bad, 0, 0), (0, bad, 0), (0, 0, bad), (bad, bad, bad), (bad, 1, -1)]
+    rows += [(1e-45, 0, 0), (0, -1e-45, 0), (1e-40, 1e-40, -1e-40), (3e38, 3e38, 3e38), (-3e38, 1, 1e-30)]
+    return np.array(rows, dtype=np.float32)
+
+
+#: Scales applied to unit directions: tiny (|d|² underflows float32 below about 1e-19), huge (|d|² overflows
+#: above about 1.8e19) and near the ends of the float32 range. (Denormal vectors have no direction: TINY32.)
+SCALES = (1e-30, 1e-20, 1e-5, 1e5, 1e20, 1e30, 1e38)
+
+
+def scale_violations(index_of, directions: np.ndarray) -> list[str]:
+    """Directions whose bin changes when the vector is scaled by one of :data:`SCALES` (unnormalised input).
+    Use directions away from bin boundaries (bin centres), where a scaled copy cannot round across one."""
+    directions = np.asarray(directions, dtype=np.float32)
+    reference = np.array(index_of(_vectors(directions)))
+    problems = []
+    for scale in SCALES:
+        scaled = (directions.astype(np.float64) * scale).astype(np.float32)
+        k = np.array(index_of(_vectors(scaled)))
+        problems += [f"{tuple(d)} x {scale:g}: bin {b} instead of {r}" for d, b, r in
+                     zip(directions[k != reference], k[k != reference], reference[k != reference])]
+    return problems
+
+
+def interior_samples(margin: float = 1e-3) -> np.ndarray:
+    """Nine positions inside a bin's square, ``margin`` away from its boundary (a round trip must keep them)."""
+    t = np.array([margin, 0.5, 1 - margin])
+    return np.stack(np.meshgrid(t, t), -1).reshape(-1, 2)
+
+
+def round_trip_violations(index_of, direction_of, count: int) -> list[str]:
+    """Bins ``k`` with ``index_of(direction_of(k, s)) != k`` for a sample ``s`` inside the bin."""
+    import mitsuba as mi
+
+    samples = interior_samples()
+    k = np.repeat(np.arange(count), len(samples)).astype(np.uint32)
+    s = np.tile(samples, (count, 1))
+    back = np.array(index_of(direction_of(mi.UInt32(k), mi.Point2f(s[:, 0], s[:, 1]))))
+    wrong = back != k
+    return [f"bin {a} at {tuple(p)} -> bin {b}" for a, p, b in zip(k[wrong], s[wrong], back[wrong])]
+
+
+@functools.lru_cache(maxsize=None)
+def sphere_bins_geometry(resolution: int) -> tuple:
+    """(:class:`~guiding.directions.SphereBins`, its :class:`BinGeometry`) for ``D = resolution`` (cached)."""
+    from .directions import SphereBins
+
+    bins = SphereBins(resolution)
+    return bins, bin_geometry(bins.direction, np.arange(bins.count))
+
+
+@functools.lru_cache(maxsize=None)
+def normal_bins_geometry(resolution: int) -> tuple:
+    """(:class:`~guiding.directions.NormalBins`, its :class:`BinGeometry`) for ``R = resolution`` (cached)."""
+    from .directions import NormalBins
+
+    bins = NormalBins(resolution)
+    return bins, bin_geometry(bins.normal, np.arange(bins.count))
+
+
+class CylindricalCells:
+    """The SD-tree's directional square cut into ``2^depth × 2^depth`` cells: every D-tree leaf at that depth is
+    one of them. ``cells`` (an ``(n, 2)`` array of (column, row)) selects which; all by default."""
+
+    def __init__(self, depth: int, cells: np.ndarray | None = None):
+        self.depth, self.n = depth, 1 << depth
+        if cells is None:
+            column, row = np.meshgrid(np.arange(self.n), np.arange(self.n))
+            cells = np.stack([column.ravel(), row.ravel()], 1)
+        self.cells = np.asarray(cells, dtype=np.int64)
+        self.count = len(self.cells)
+        self.solid_angle = 4 * np.pi / (self.n * self.n)
+
+    def uv(self, k, sample):
+        """The point at ``sample`` ∈ [0,1]² of cell ``k`` (float64 positions rounded once to float32)."""
+        import mitsuba as mi
+
+        k = np.array(k, dtype=np.int64)
+        s = np.broadcast_to(to_numpy(sample), (len(k), 2))
+        return mi.Point2f((self.cells[k, 0] + s[:, 0]) / self.n, (self.cells[k, 1] + s[:, 1]) / self.n)
+
+    def direction(self, k, sample):
+        from .guides.sdtree import uv_to_dir
+
+        return uv_to_dir(self.uv(k, sample))
+
+    def index(self, d) -> np.ndarray:
+        """The position in ``cells`` of the cell of ``d`` (by :func:`~guiding.guides.sdtree.dir_to_uv`), or
+        ``count`` when that cell is not among them."""
+        from .guides.sdtree import dir_to_uv
+
+        uv = to_numpy(dir_to_uv(d))
+        key = np.floor(uv[:, 1] * self.n).astype(np.int64) * self.n + np.floor(uv[:, 0] * self.n).astype(np.int64)
+        keys = self.cells[:, 1] * self.n + self.cells[:, 0]
+        order = np.argsort(keys)
+        position = np.clip(np.searchsorted(keys[order], key), 0, self.count - 1)
+        found = keys[order][position] == key
+        return np.where(found, order[position], self.count)
+
+
+def _first(problems: list[str], limit: int = 3) -> str:
+    """The first few problems and how many there were, for a one-line failure message."""
+    more = f" (and {len(problems) - limit} more)" if len(problems) > limit else ""
+    return "; ".join(problems[:limit]) + more
+
+
+# =====================================================================================================================
+#  Directions
+# =====================================================================================================================
+#: Directional resolutions D checked: 1 and 2 (one and four bins per hemisphere), odd ones (a bin centred on the
+#: pole), the paper's 16, and 64.
+SPHERE_RESOLUTIONS = (1, 2, 3, 4, 5, 16, 64)
+#: Odd cube-map resolutions of the memo tables' normal bins (5 is the default).
+NORMAL_RESOLUTIONS = (1, 3, 5, 7)
+#: D-tree depths whose every leaf is checked, and deeper ones (to the default maximum 20) checked on random leaves.
+CYLINDRICAL_DEPTHS = (1, 2, 3, 4, 6, 8)
+CYLINDRICAL_DEEP = (12, 16, 20)
+
+
+def cylindrical_cells(depth: int, count: int = 4096, seed: int = 0) -> CylindricalCells:
+    """All cells at ``depth`` up to depth 8, else ``count`` random ones plus the cells at the poles and seams."""
+    if depth <= 8:
+        return CylindricalCells(depth)
+    n = 1 << depth
+    rng = np.random.default_rng(seed + depth)
+    edges = [0, 1, n // 2 - 1, n // 2, n - 2, n - 1]
+    special = np.array([(c, r) for c in edges for r in edges])
+    return CylindricalCells(depth, np.unique(np.concatenate([special, rng.integers(0, n, size=(count, 2))]), axis=0))
+
+
+@case("directions", "SphereBins: every bin's interior maps back to the bin (D = 1, 2, 3, 4, 5, 16, 64)")
+def sphere_bins_round_trip() -> dict:
+    for resolution in SPHERE_RESOLUTIONS:
+        bins, _ = sphere_bins_geometry(resolution)
+        problems = round_trip_violations(bins.index, bins.direction, bins.count)
+        check(not problems, f"D = {resolution}: {_first(problems)}")
+    return {"resolutions": list(SPHERE_RESOLUTIONS), "points_per_bin": len(interior_samples())}
+
+
+@case("directions", "SphereBins: poles, the concentric map's seams and the hemisphere boundary (z = ±0, ±1e-45, "
+                    "…) land in a valid bin that contains them, on the right hemisphere")
+def sphere_bins_poles_seams_boundary() -> dict:
+    directions = special_directions()
+    for resolution in SPHERE_RESOLUTIONS:
+        bins, geometry = sphere_bins_geometry(resolution)
+        problems = containment_violations(bins.index, bins.count, geometry, directions, lower_from=bins.count // 2)
+        check(not problems, f"D = {resolution}: {_first(problems)}")
+    return {"directions": len(directions)}
+
+
+@case("directions", "SphereBins: zero, NaN, Inf and extreme vectors give a valid bin; scaling a direction by "
+                    "1e-40 … 1e38 (unnormalised, denormal, |d|² overflowing) keeps its bin")
+def sphere_bins_any_input() -> dict:
+    for resolution in SPHERE_RESOLUTIONS:
+        bins, geometry = sphere_bins_geometry(resolution)
+        problems = containment_violations(bins.index, bins.count, geometry, degenerate_inputs(),
+                                          lower_from=bins.count // 2)
+        problems += scale_violations(bins.index, geometry.centre)
+        check(not problems, f"D = {resolution}: {_first(problems)}")
+    return {"inputs": len(degenerate_inputs()), "scales": list(SCALES)}
+
+
+@case("directions", "SphereBins: every bin has solid angle 2π/D² to float precision (|error| ≤ perimeter·ε₃₂)")
+def sphere_bins_equal_solid_angle() -> dict:
+    figures = {}
+    for resolution in SPHERE_RESOLUTIONS:
+        bins, geometry = sphere_bins_geometry(resolution)
+        excess = equal_area_excess(geometry, bins.solid_angle)
+        worst = int(np.argmax(excess))
+        relative = np.abs(geometry.solid_angle / bins.solid_angle - 1)
+        check(excess[worst] <= 1, f"D = {resolution}: bin {worst} has solid angle {geometry.solid_angle[worst]:.9g}"
+                                  f" instead of {bins.solid_angle:.9g} ({excess[worst]:.2f} x perimeter·ε₃₂)")
+        figures[f"D{resolution}_max_relative_error"] = float(relative.max())
+    return figures
+
+
+@case("directions", "NormalBins: interiors map back to their bin, the six axes are bin centres, zero/NaN/Inf "
+                    "normals give a valid bin, scaled normals keep theirs (R = 1, 3, 5, 7)")
+def normal_bins_maps() -> dict:
+    import mitsuba as mi
+
+    axes = np.array([(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)], dtype=np.float32)
+    for resolution in NORMAL_RESOLUTIONS:
+        bins, geometry = normal_bins_geometry(resolution)
+        problems = round_trip_violations(bins.index, bins.normal, bins.count)
+        problems += containment_violations(bins.index, bins.count, geometry,
+                                           np.concatenate([special_directions(), degenerate_inputs()]))
+        problems += scale_violations(bins.index, geometry.centre)
+        # The memo tables are exact only at bin centres: an axis normal must be the centre of its bin.
+        k = np.array(bins.index(_vectors(axes)))
+        centres = to_numpy(bins.normal(mi.UInt32(k.astype(np.uint32))))
+        off = angle_between(unit(axes), unit(centres)) > 2 * EPS32
+        problems += [f"axis {tuple(a)} is not the centre of bin {b}" for a, b in zip(axes[off], k[off])]
+        check(not problems, f"R = {resolution}: {_first(problems)}")
+    return {"resolutions": list(NORMAL_RESOLUTIONS)}
+
+
+#: Largest angle between a direction and its round trip through the cylindrical square: at a pole, a z error of
+#: 2 ulps (u = (z + 1)/2 is rounded, then 2u − 1) moves the direction by √(2·Δz) = √(4·ε₃₂) ≈ 7e-4 rad.
+CYLINDRICAL_ROUND_TRIP = float(np.sqrt(4 * EPS32)) * 1.5
+
+
+def cylindrical_violations(directions: np.ndarray) -> list[str]:
+    """Directions whose point on the SD-tree's square is outside [0, 1)² or NaN, or, for directions that have
+    one, whose round trip through the square moves them more than :data:`CYLINDRICAL_ROUND_TRIP`."""
+    from .guides.sdtree import dir_to_uv, uv_to_dir
+
+    directions = np.asarray(directions, dtype=np.float32).reshape(-1, 3)
+    uv = dir_to_uv(_vectors(directions))
+    square = to_numpy(uv)
+    outside = ~((square >= 0) & (square < 1)).all(axis=1)
+    problems = [f"{tuple(d)} -> uv {tuple(p)}" for d, p in zip(directions[outside], square[outside])]
+    d = unit(directions)
+    has_direction = np.isfinite(d).all(axis=1) & ~outside
+    angle = angle_between(d[has_direction], unit(to_numpy(uv_to_dir(uv)))[has_direction])
+    moved = angle > CYLINDRICAL_ROUND_TRIP
+    problems += [f"{tuple(x)} comes back {a:.3g} rad away" for x, a in zip(directions[has_direction][moved],
+                                                                            angle[moved])]
+    return problems
+
+
+@case("directions", "SD-tree cylindrical map: poles, the azimuth seam, the equator, zero/NaN/Inf and scaled "
+                    "directions give a point of [0,1)² and come back; every leaf centre down to depth 20 maps back "
+                    "to its leaf")
+def cylindrical_map_round_trip() -> dict:
+    import mitsuba as mi
+
+    problems = cylindrical_violations(np.concatenate([special_directions(), degenerate_inputs()]))
+    centres = unit(special_directions())
+    for scale in SCALES:
+        problems += cylindrical_violations((centres * scale).astype(np.float32))
+    # The square's own corners and edges, as float32 points (1 − 2⁻²⁴ is the largest coordinate below 1).
+    edge = np.array([0, 2.0 ** -24, 0.5, 1 - 2.0 ** -24], dtype=np.float32)
+    corners = np.stack(np.meshgrid(edge, edge), -1).reshape(-1, 2)
+    from .guides.sdtree import uv_to_dir
+
+    problems += cylindrical_violations(to_numpy(uv_to_dir(mi.Point2f(corners[:, 0], corners[:, 1]))))
+    checked = 0
+    for depth in (*CYLINDRICAL_DEPTHS, *CYLINDRICAL_DEEP):
+        cells = cylindrical_cells(depth)
+        back = cells.index(cells.direction(np.arange(cells.count), mi.Point2f(0.5, 0.5)))
+        wrong = np.flatnonzero(back != np.arange(cells.count))
+        problems += [f"depth {depth}: leaf {tuple(cells.cells[i])} -> {back[i]}" for i in wrong]
+        checked += cells.count
+    check(not problems, _first(problems))
+    return {"leaves_checked": checked, "max_depth": max(CYLINDRICAL_DEEP)}
+
+
+@case("directions", "SD-tree cylindrical map: every leaf has solid angle 4π/4^depth to float precision (all "
+                    "leaves to depth 8, random ones at 12, 16, 20)")
+def cylindrical_map_equal_solid_angle() -> dict:
+    figures = {}
+    for depth in (*CYLINDRICAL_DEPTHS, *CYLINDRICAL_DEEP):
+        cells = cylindrical_cells(depth)
+        # Large leaves have long curved edges: more boundary points keep the chords' error below float precision.
+        geometry = bin_geometry(cells.direction, np.arange(cells.count), steps=max(16, 256 >> depth))
+        excess = equal_area_excess(geometry, cells.solid_angle)
+        worst = int(np.argmax(excess))
+        check(excess[worst] <= 1, f"depth {depth}: leaf {tuple(cells.cells[worst])} has solid angle "
+                                  f"{geometry.solid_angle[worst]:.9g} instead of {cells.solid_angle:.9g} "
+                                  f"({excess[worst]:.2f} x perimeter·ε₃₂)")
+        figures[f"depth{depth}_max_relative_error"] = float(np.abs(geometry.solid_angle / cells.solid_angle - 1).max())
+    return figures
