@@ -548,3 +548,246 @@ def cylindrical_map_equal_solid_angle() -> dict:
                                   f"({excess[worst]:.2f} x perimeter·ε₃₂)")
         figures[f"depth{depth}_max_relative_error"] = float(np.abs(geometry.solid_angle / cells.solid_angle - 1).max())
     return figures
+
+
+# =====================================================================================================================
+#  Tables: updates from hostile accumulators
+# =====================================================================================================================
+#: Contents injected into one accumulator entry (``sum`` or ``count``), and what the update must make of it:
+#: ``dropped`` entries lose their history (counted), ``clamped`` ones keep it with Q clamped to Q_LIMIT (counted).
+HOSTILE_ENTRIES = {
+    "all-zero": dict(),
+    "1e30": dict(sum=1e30),
+    "1e39 (beyond float32)": dict(sum=1e39, clamped=True),
+    "float32 denormal": dict(sum=1e-40),
+    "float64 denormal": dict(sum=1e-310),
+    "NaN": dict(sum=float("nan"), dropped=True),
+    "+Inf": dict(sum=float("inf"), dropped=True),
+    "-Inf": dict(sum=float("-inf"), dropped=True),
+    "negative": dict(sum=-5.0, dropped=True),
+    "NaN count": dict(count=float("nan"), dropped=True),
+    "Inf count": dict(count=float("inf"), dropped=True),
+}
+
+#: The grid guides whose tables cover every array an update builds: the sphere CDF (sphere_inv, and the policy
+#: proposal of hemi_rej_plus), the per-pair N, M and hemi_inv CDF, and Expected SARSA's V.
+TABLE_METHODS = ("expected_sarsa-sphere_inv", "expected_sarsa-hemi_inv", "expected_sarsa-hemi_rej_plus",
+                 "sarsa-hemi_rej")
+
+
+def _grid_guide(method: str, S: int = 2, D: int = 4, min_exploration: float | None = None):
+    """A grid guide of ``method`` at resolution S, D over the unit cube (its bounds set, nothing learnt)."""
+    import mitsuba as mi
+
+    from .guides.grid import GridGuide
+    from .methods import grid_parameters
+
+    parameters = {**grid_parameters(method), "spatial_resolution": S, "directional_resolution": D}
+    if min_exploration is not None:
+        parameters["min_exploration"] = min_exploration
+    guide = GridGuide(**parameters)
+    guide.record_table.set_bounds(mi.BoundingBox3f(mi.ScalarPoint3f(0), mi.ScalarPoint3f(1)))
+    return guide
+
+
+def _fill_record(record, sums: np.ndarray, counts: np.ndarray) -> None:
+    """Give a record accumulators (float64, as the device holds them) and mark every (cell, normal bin) visited."""
+    import drjit as dr
+    import mitsuba as mi
+
+    record.acc_sum, record.acc_count = mi.Float64(sums), mi.Float64(counts)
+    if record.needs_pairs:
+        record.visited = dr.full(mi.UInt32, 1, record.cells * record.normal_bins.count)
+
+
+def _record_arrays(record) -> dict:
+    """Every table an update builds, as NumPy arrays."""
+    names = ["q", "policy", "cdf", "norm", "bound", "value", "hemi_cdf"]
+    return {name: np.array(getattr(record, name, None)) for name in names if getattr(record, name, None) is not None}
+
+
+def record_violations(record) -> list[str]:
+    """What is wrong with a record's tables after an update: anything non-finite, a policy entry that is not a
+    positive normal float or a cell whose policy does not sum to 1, a CDF that decreases or does not end at exactly
+    1, a memo with N ≤ 0 or a bound M below the mean ū = N/2π of P·cos, or Q outside [0, Q_LIMIT]."""
+    from .guides.grid_record import Q_LIMIT
+
+    B = record.bins.count
+    tables = _record_arrays(record)
+    problems = [f"{name} has {np.count_nonzero(~np.isfinite(a))} non-finite entries" for name, a in tables.items()
+                if not np.isfinite(a).all()]
+    q, policy = tables["q"], tables["policy"].reshape(-1, B)
+    if not ((q >= 0) & (q <= Q_LIMIT)).all():
+        problems.append(f"Q outside [0, {Q_LIMIT:g}]: {q[(q < 0) | (q > Q_LIMIT)][:3]}")
+    if not (policy >= TINY32).all():
+        problems.append(f"policy entries below the smallest normal float: {policy[policy < TINY32][:3]}")
+    sums = policy.astype(np.float64).sum(axis=1)
+    if not (np.abs(sums - 1) <= B * EPS32).all():
+        problems.append(f"cell policies sum to {sums[np.abs(sums - 1) > B * EPS32][:3]}")
+    rows = [("cdf", tables.get("cdf"))]
+    if record.needs_pairs and record.hemi_cdf is not None:
+        rows.append(("hemi_cdf", tables["hemi_cdf"].reshape(-1, B)[np.array(record.visited) != 0]))
+    for name, cdf in rows:
+        if cdf is None:
+            continue
+        cdf = cdf.reshape(-1, B)
+        if not (np.diff(cdf, axis=1) >= 0).all():
+            problems.append(f"{name} decreases in {np.count_nonzero((np.diff(cdf, axis=1) < 0).any(axis=1))} rows")
+        if not (cdf[:, -1] == 1).all():
+            problems.append(f"{name} rows end at {cdf[cdf[:, -1] != 1, -1][:3]} instead of 1")
+    if record.needs_pairs:
+        visited = np.array(record.visited) != 0
+        norm, bound, value = tables["norm"][visited], tables["bound"][visited], tables["value"][visited]
+        if not (norm >= TINY32).all():
+            problems.append(f"N not a positive normal float: {norm[norm < TINY32][:3]}")
+        if not (bound >= norm / (2 * np.pi) * (1 - 1e-5)).all():
+            problems.append("bound M below the mean of P·cos")
+        if not (value >= 0).all():
+            problems.append(f"V negative: {value[value < 0][:3]}")
+    return problems
+
+
+def _hostile_grid(method: str, kind: str, min_exploration: float | None) -> tuple:
+    """Two guides of ``method``: one whose accumulators hold ``HOSTILE_ENTRIES[kind]`` in one entry of cell 0,
+    and one holding what the update should turn that entry into (zeros if dropped, Q_LIMIT if clamped)."""
+    from .guides.grid_record import Q_LIMIT
+
+    spec = HOSTILE_ENTRIES[kind]
+    hostile, expected = (_grid_guide(method, min_exploration=min_exploration) for _ in range(2))
+    record = hostile.record_table
+    size, entry = record.cells * record.bins.count, 3
+    rng = np.random.default_rng(len(kind))
+    if spec:
+        sums, counts = rng.uniform(0, 2, size) * 4, np.full(size, 4.0)
+    else:
+        sums, counts = np.zeros(size), np.zeros(size)
+    bad_sums, bad_counts = sums.copy(), counts.copy()
+    bad_sums[entry] = spec.get("sum", sums[entry])
+    bad_counts[entry] = spec.get("count", counts[entry])
+    if spec.get("dropped"):
+        sums[entry] = counts[entry] = 0.0
+    elif spec.get("clamped"):
+        sums[entry], counts[entry] = Q_LIMIT, 1.0
+    else:
+        sums, counts = bad_sums, bad_counts
+    _fill_record(record, bad_sums, bad_counts)
+    _fill_record(expected.record_table, sums, counts)
+    return hostile, expected
+
+
+@case("tables", "grid record: an update from all-zero, 1e30, 1e39, denormal, NaN, ±Inf or negative accumulators "
+                "gives finite tables (policy > 0 summing to 1, CDFs ending at 1, N > 0, M ≥ ū), counts what it "
+                "dropped or clamped, and equals the update of the sanitised table (nothing propagates)")
+def grid_table_updates() -> dict:
+    updates = 0
+    for method in TABLE_METHODS:
+        for min_exploration in (None, 0.0):      # the default floor, and the paper's schedule (ε → 1e-10)
+            for kind, spec in HOSTILE_ENTRIES.items():
+                hostile, expected = _hostile_grid(method, kind, min_exploration)
+                where = f"{method}, min_exploration={min_exploration}, {kind}"
+                for spp_done in (8, 1000):       # first update, and a late one with a small ε
+                    stats = hostile.update(spp_done)
+                    expected.update(spp_done)
+                    problems = record_violations(hostile.record_table)
+                    check(not problems, f"{where}, {spp_done} spp: {_first(problems)}")
+                    want = {"dropped_entries": int(bool(spec.get("dropped"))) if spp_done == 8 else 0,
+                            "clamped_entries": int(bool(spec.get("clamped")))}
+                    got = {key: stats.get(key) for key in want}
+                    check(got == want, f"{where}, {spp_done} spp: counted {got}, expected {want}")
+                    for name, array in _record_arrays(hostile.record_table).items():
+                        reference = _record_arrays(expected.record_table)[name]
+                        differ = np.count_nonzero(array != reference)
+                        check(differ == 0, f"{where}, {spp_done} spp: {name} differs from the sanitised table's "
+                                           f"in {differ} entries")
+                    updates += 1
+    return {"methods": list(TABLE_METHODS), "kinds": list(HOSTILE_ENTRIES), "updates_checked": updates}
+
+
+@functools.lru_cache(maxsize=None)
+def floor_scene():
+    """A diffuse unit square at z = 0 (no sensor, no emitter): enough to prepare a guide on."""
+    import mitsuba as mi
+
+    return mi.load_dict({"type": "scene", "floor": {"type": "rectangle", "bsdf": {"type": "diffuse"}}})
+
+
+#: The SD-tree guides: Müller's SD-tree and Kim & Kim's uniform grid of split-only quadtrees.
+TREE_METHODS = ("sdtree", "quadtree-grid")
+
+
+def _tree_guide(method: str):
+    from .methods import make_guide
+
+    guide = make_guide(method)
+    guide.prepare(floor_scene())
+    return guide
+
+
+def _recording_forest(guide):
+    """The host forest whose leaves the guide's energy accumulator addresses."""
+    return guide._recording_host if hasattr(guide, "_recording_host") else guide._forest
+
+
+def forest_violations(forest) -> list[str]:
+    """What is wrong with a device forest: probabilities non-finite or outside [0, 1], or a node whose four
+    probabilities do not sum to 1."""
+    prob = np.array(forest.prob, dtype=np.float64)[: 4 * forest.n_nodes].reshape(-1, 4)
+    problems = []
+    if not np.isfinite(prob).all():
+        problems.append(f"{np.count_nonzero(~np.isfinite(prob))} non-finite probabilities")
+    elif not ((prob >= 0) & (prob <= 1)).all():
+        problems.append("probabilities outside [0, 1]")
+    elif not (np.abs(prob.sum(axis=1) - 1) <= 4 * EPS32).all():
+        problems.append(f"node probabilities sum to {prob.sum(axis=1)[np.abs(prob.sum(axis=1) - 1) > 4 * EPS32][:3]}")
+    return problems
+
+
+def _hostile_tree(method: str, kind: str) -> tuple:
+    """Two prepared guides of ``method`` with recorded energies and counts: one holding ``HOSTILE_ENTRIES[kind]``
+    in a leaf of tree 0 (as a float32 accumulator holds it: 1e39 is +Inf there), one holding it sanitised."""
+    import mitsuba as mi
+
+    spec = HOSTILE_ENTRIES[kind]
+    hostile, expected = _tree_guide(method), _tree_guide(method)
+    slots = _recording_forest(hostile).leaf_table()[1]
+    energy = np.zeros(hostile._energy_acc.shape[0], dtype=np.float32)
+    counts = np.zeros(hostile._count_acc.shape[0], dtype=np.float32)
+    if spec:
+        energy[slots] = np.random.default_rng(len(kind)).uniform(0.5, 2, len(slots))
+        counts[: _recording_forest(hostile).n_trees] = 100
+    bad_energy, bad_counts = energy.copy(), counts.copy()
+    with np.errstate(over="ignore"):
+        bad_energy[slots[5]] = np.float32(spec.get("sum", energy[slots[5]]))
+        bad_counts[0] = np.float32(spec.get("count", counts[0]))
+    clean_energy = np.where(np.isfinite(bad_energy) & (bad_energy >= 0), bad_energy, 0)
+    clean_counts = np.where(np.isfinite(bad_counts) & (bad_counts >= 0), bad_counts, 0)
+    hostile._energy_acc, hostile._count_acc = mi.Float(bad_energy), mi.Float(bad_counts)
+    expected._energy_acc, expected._count_acc = mi.Float(clean_energy), mi.Float(clean_counts)
+    dropped = int(np.count_nonzero(bad_energy != clean_energy) + np.count_nonzero(bad_counts != clean_counts))
+    return hostile, expected, dropped
+
+
+@case("tables", "SD-tree and quadtree grid: an update from all-zero, huge, denormal, NaN, ±Inf or negative "
+                "energies and vertex counts gives finite D-tree probabilities (summing to 1 per node), counts what "
+                "it dropped, keeps the S-tree bounded, and equals the update of the sanitised input")
+def sdtree_table_updates() -> dict:
+    checked = 0
+    for method in TREE_METHODS:
+        for kind in HOSTILE_ENTRIES:
+            hostile, expected, dropped = _hostile_tree(method, kind)
+            spp_done = getattr(hostile, "iteration_end_spp", 8)    # the SD-tree refines at an iteration's end
+            stats, _ = hostile.update(spp_done), expected.update(spp_done)
+            where = f"{method}, {kind}"
+            problems = forest_violations(hostile._sampling)
+            check(not problems, f"{where}: {_first(problems)}")
+            check(stats.get("dropped_entries") == dropped,
+                  f"{where}: counted {stats.get('dropped_entries')} dropped entries, expected {dropped}")
+            same = np.array_equal(np.array(hostile._sampling.prob), np.array(expected._sampling.prob))
+            check(same, f"{where}: the D-trees differ from those of the sanitised input")
+            if hasattr(hostile, "stree"):
+                check(hostile.stree.n_nodes == expected.stree.n_nodes,
+                      f"{where}: S-tree of {hostile.stree.n_nodes} nodes, {expected.stree.n_nodes} expected")
+            if not HOSTILE_ENTRIES[kind]:
+                check(not np.array(hostile._sampling.has_energy).any(), f"{where}: a tree without energy is guided")
+            checked += 1
+    return {"methods": list(TREE_METHODS), "kinds": list(HOSTILE_ENTRIES), "updates_checked": checked}

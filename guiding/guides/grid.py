@@ -147,6 +147,7 @@ class GridGuide(Guide):
     def update(self, spp_done: int) -> dict:
         stats = self._read_counters()
         stats["memo_pairs"] = self.record_table.update(spp_done)
+        stats.update(self.record_table.sanitised)   # bad accumulator entries dropped, Q clamped (grid_record)
         self.trained = True
         self._reset_counters()
         return stats

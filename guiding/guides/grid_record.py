@@ -26,6 +26,11 @@ from ..directions import NormalBins, SphereBins
 
 #: Added to Q before normalising, so that no bin has zero probability (method.md §4).
 Q_OFFSET = 1e-6
+#: Largest Q kept. A larger running mean (fireflies of extreme emitters, or an overflow) is clamped to it, so that
+#: every sum over a cell's bins stays finite in float32 (B·Q_LIMIT ≤ 2·256²·1e30 ≪ 3.4e38: the policy's
+#: normaliser, Expected SARSA's V) and the smallest policy entry, Q_OFFSET/(B·Q_LIMIT) even with ε = 0, stays a
+#: normal float (the CPU backend flushes denormals to zero).
+Q_LIMIT = 1e30
 #: Quadrature points per bin side for the cosine integrals.
 QUADRATURE = 8
 #: A bin reachable from the normal bin but with zero cosine integral at its centre keeps this share of its area,
@@ -42,6 +47,19 @@ MIN_EXPLORATION = 0.1
 def exploration(spp_done: int, floor: float = MIN_EXPLORATION) -> float:
     """ε = max(0.1^(N/100), floor) for N samples per pixel completed before the pass (method.md §4)."""
     return max(0.1 ** (spp_done / 100.0), floor)
+
+
+def _normalised_cdf(weight: mi.Float, size: int) -> mi.Float:
+    """Inclusive CDFs of consecutive rows of ``size`` weights, each divided by its own last entry.
+
+    Every row then ends at exactly 1.0 (x/x is exact), as do the trailing zero-weight bins, so a binary search for
+    any u < 1 stops at a bin with positive weight. Dividing by a separately reduced total instead (summed in
+    another order) left rows ending at 1 − 1e-7: u above that picked the last bin even when its weight was 0,
+    a direction with density 0.
+    """
+    running = dr.block_prefix_sum(weight, size, exclusive=False)
+    row_end = (dr.arange(mi.UInt32, dr.width(weight)) // size + 1) * size - 1
+    return running / dr.gather(mi.Float, running, row_end)
 
 
 def _angular_radius(directions_of, count: int, centres: mi.Vector3f) -> mi.Float:
@@ -87,6 +105,8 @@ class RadianceRecord:
 
         self.bbox_min = mi.Point3f(0)
         self.inv_extent = mi.Vector3f(1)
+        self.sanitised: dict[str, int] = {}
+        self.sanitised_total: dict[str, int] = {}
         self.acc_sum = dr.zeros(mi.Float64, C * B)
         self.acc_count = dr.zeros(mi.Float64, C * B)
         self.q = dr.zeros(mi.Float, C * B)
@@ -155,17 +175,35 @@ class RadianceRecord:
     def update(self, spp_done: int) -> int:
         """Rebuild Q, the policy and what the samplers need; returns the number of memoised pairs."""
         B = self.bins.count
+        self._sanitise()
         visits = self.acc_count
-        self.q = mi.Float(dr.select(visits > 0, self.acc_sum / dr.maximum(visits, 1), 0))
+        mean = self.acc_sum / dr.maximum(visits, 1)
+        self.q = mi.Float(dr.select(visits > 0, dr.minimum(mean, Q_LIMIT), 0))
         epsilon = dr.opaque(mi.Float, exploration(spp_done, self.min_exploration))
         shifted = self.q + Q_OFFSET
         cell_of = dr.arange(mi.UInt32, self.cells * B) // B
         totals = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, shifted, B), cell_of)
         self.policy = (1 - epsilon) * shifted / totals + epsilon / B
         if self.needs_cdf:
-            self.cdf = dr.block_prefix_sum(self.policy, B, exclusive=False)
+            self.cdf = _normalised_cdf(self.policy, B)
         dr.eval(self.q, self.policy, self.cdf)
         return self._update_memo() if self.needs_pairs else 0
+
+    def _sanitise(self) -> None:
+        """Drop the history of (cell, bin) entries whose accumulators hold NaN, ±Inf or a negative value (a bad
+        target, or memory corruption): never cleared, they would keep Q, and through the normaliser the whole
+        cell's policy, NaN forever. ``sanitised`` counts, for this update, the entries dropped and the entries whose
+        Q was clamped to Q_LIMIT; ``sanitised_total`` since the start."""
+        visits = self.acc_count
+        mean = self.acc_sum / dr.maximum(visits, 1)
+        bad = ~(dr.isfinite(mean) & dr.isfinite(visits) & (mean >= 0) & (visits >= 0))
+        self.acc_sum = dr.select(bad, 0, self.acc_sum)
+        self.acc_count = dr.select(bad, 0, visits)
+        dr.eval(self.acc_sum, self.acc_count)
+        self.sanitised = {"dropped_entries": int(dr.count(bad)[0]),
+                          "clamped_entries": int(dr.count(~bad & (visits > 0) & (mean > Q_LIMIT))[0])}
+        for key, value in self.sanitised.items():
+            self.sanitised_total[key] = self.sanitised_total.get(key, 0) + value
 
     def _update_memo(self) -> int:
         B, NB = self.bins.count, self.normal_bins.count
@@ -189,9 +227,7 @@ class RadianceRecord:
         if self.needs_hemi_cdf:
             reachable = dr.select(max_cos > 0, REACHABLE_FLOOR * self.bins.solid_angle, 0)
             weight = p * dr.maximum(cos_integral, reachable)
-            running = dr.block_prefix_sum(weight, B, exclusive=False)
-            total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, B), flat // B)
-            dr.scatter(self.hemi_cdf, running / total, pair * B + k)
+            dr.scatter(self.hemi_cdf, _normalised_cdf(weight, B), pair * B + k)
         dr.eval(self.norm, self.bound, self.value, self.hemi_cdf)
         return count
 

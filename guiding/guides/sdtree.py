@@ -599,6 +599,8 @@ class _TreeGuide(Guide):
         self._recording: DeviceForest | None = None
         self._energy_acc = None
         self._count_acc = None
+        self.sanitised = {"dropped_entries": 0}          # bad accumulator entries of the last update (_pull)
+        self.sanitised_total = {"dropped_entries": 0}
 
     # -------------------------------------------------------------------------------------- device side
     def _locate(self, p, active):
@@ -713,8 +715,16 @@ class _TreeGuide(Guide):
         return time.perf_counter() - start
 
     def _pull(self) -> tuple[np.ndarray, np.ndarray]:
+        """The recorded leaf energies and vertex counts. Entries that are NaN, ±Inf or negative (a float32 sum
+        that overflowed, or memory corruption) are set to 0 and counted in ``sanitised``: a NaN or infinite energy
+        would make its whole D-tree's probabilities NaN, and an infinite count would split the S-tree to its maximum
+        depth (2^60 leaves)."""
         energy = self._energy_acc.numpy()[: 4 * self._recording.n_nodes].astype(np.float64)
         counts = self._count_acc.numpy()[: self._recording.n_trees].astype(np.float64)
+        bad_energy, bad_counts = ~(np.isfinite(energy) & (energy >= 0)), ~(np.isfinite(counts) & (counts >= 0))
+        energy[bad_energy], counts[bad_counts] = 0.0, 0.0
+        self.sanitised = {"dropped_entries": int(bad_energy.sum() + bad_counts.sum())}
+        self.sanitised_total["dropped_entries"] += self.sanitised["dropped_entries"]
         return energy, counts
 
     def _forest_stats(self, forest: Forest, prefix: str) -> dict:
@@ -854,7 +864,7 @@ class SDTreeGuide(_TreeGuide):
         dr.sync_thread()
         self._last_refine = {"refine_seconds": time.perf_counter() - start, "refine_host_seconds": host_seconds,
                              "stree_threshold": threshold, "vertices_recorded": float(counts.sum()),
-                             "energy_recorded": float(energy.sum())}
+                             "energy_recorded": float(energy.sum()), **self.sanitised}
         return dict(self._last_refine)
 
     def _structure_stats(self) -> dict:
@@ -924,7 +934,7 @@ class QuadtreeGridGuide(_TreeGuide):
         dr.sync_thread()
         self._passes += 1
         stats = {"splat_seconds": splat_seconds, "refine_seconds": time.perf_counter() - start,
-                 "refine_host_seconds": host_seconds, "energy_recorded": float(energy.sum())}
+                 "refine_host_seconds": host_seconds, "energy_recorded": float(energy.sum()), **self.sanitised}
         stats.update(self._structure_stats())
         return stats
 
