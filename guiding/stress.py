@@ -22,7 +22,9 @@ twice. A Mitsuba variant must be set before a case runs.
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import io
 import time
 import traceback
 from collections.abc import Callable
@@ -791,3 +793,231 @@ def sdtree_table_updates() -> dict:
                 check(not np.array(hostile._sampling.has_energy).any(), f"{where}: a tree without energy is guided")
             checked += 1
     return {"methods": list(TREE_METHODS), "kinds": list(HOSTILE_ENTRIES), "updates_checked": checked}
+
+
+# =====================================================================================================================
+#  Samplers
+# =====================================================================================================================
+class FixedSampler:
+    """A stand-in for ``mi.Sampler`` that returns the same chosen values at every call: ``next_1d`` gives ``u``,
+    ``next_2d`` gives ``uv`` (per lane). It drives samplers to the extremes of their inputs (0 and 1 − 2⁻²⁴); only
+    for code without a symbolic loop over the sampler's state."""
+
+    def __init__(self, u, uv):
+        self.u, self.uv = u, uv
+
+    def next_1d(self, active=True):
+        return self.u
+
+    def next_2d(self, active=True):
+        return self.uv
+
+
+#: The largest float32 below 1: the largest value a Mitsuba sampler returns.
+ONE_MINUS_EPS32 = float(np.nextafter(np.float32(1), np.float32(0)))
+
+
+def extreme_samples(size_per_value: int = 1) -> tuple:
+    """All combinations of u, and both coordinates of uv, in {0, 0.5, 1 − 2⁻²⁴}: ``(u, uv)`` as NumPy arrays."""
+    values = np.array([0.0, 0.5, ONE_MINUS_EPS32], dtype=np.float32)
+    grid = np.stack(np.meshgrid(values, values, values), -1).reshape(-1, 3)
+    grid = np.repeat(grid, size_per_value, axis=0)
+    return grid[:, 0], grid[:, 1:]
+
+
+def diffuse_vertex(normal, size: int, position=(0.05, 0.05, 0.05)):
+    """A surface interaction on a diffuse surface with ``normal`` at ``position``, ``size`` lanes wide (the path
+    arrives from the normal's side), and its BSDF."""
+    import drjit as dr
+    import mitsuba as mi
+
+    si = dr.zeros(mi.SurfaceInteraction3f, size)
+    si.p = mi.Point3f(*position)
+    si.n = mi.Normal3f(*(float(c) for c in normal))
+    si.sh_frame = mi.Frame3f(si.n)
+    si.wi = mi.Vector3f(0, 0, 1)
+    return si, mi.BSDFPtr(diffuse_bsdf())
+
+
+@functools.lru_cache(maxsize=None)
+def diffuse_bsdf():
+    """A diffuse BSDF of albedo 0.5, kept alive here: a ``BSDFPtr`` does not own the object it points to."""
+    import mitsuba as mi
+
+    return mi.load_dict({"type": "diffuse", "reflectance": 0.5})
+
+
+def spiked_guide(method: str, spike, normal, D: int = 16, min_exploration: float = 0.0):
+    """A trained grid guide (cell 0 of S = 2) whose Q is Q_LIMIT in the bin of direction ``spike`` and 0 elsewhere,
+    with the paper's exploration schedule after 10 000 spp (ε = 1e-100): the most peaked policy a table can hold.
+    The (cell, normal bin) pair of ``normal`` is memoised."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from .guides.grid_record import Q_LIMIT
+
+    guide = _grid_guide(method, S=2, D=D, min_exploration=min_exploration)
+    record = guide.record_table
+    size = record.cells * record.bins.count
+    sums, counts = np.zeros(size), np.zeros(size)
+    k = int(np.array(record.bins.index(_vectors(np.array([spike]))))[0])
+    sums[k], counts[k] = Q_LIMIT, 1.0
+    _fill_record(record, sums, counts)
+    record.visited = dr.zeros(mi.UInt32, record.cells * record.normal_bins.count)
+    dr.scatter(record.visited, mi.UInt32(1), record.pair(mi.UInt32(0), _vectors(np.array([normal]))))
+    guide.update(spp_done=10_000)
+    return guide
+
+
+def sample_violations(si, bs, weight) -> list[str]:
+    """Lanes whose direction leaves on the side the path arrived from (f·cos > 0 for a diffuse BSDF) with a
+    density that is not positive and finite, and lanes whose weight is not finite."""
+    pdf, w = np.array(bs.pdf), np.array(weight).reshape(3, -1)
+    usable = to_numpy(bs.wo)[:, 2] * np.sign(np.array(si.wi.z)) > 0
+    problems = [f"lane {i}: direction {tuple(to_numpy(bs.wo)[i])} with pdf {pdf[i]}"
+                for i in np.flatnonzero(usable & ~(np.isfinite(pdf) & (pdf > 0)))]
+    problems += [f"lane {i}: weight {w[:, i]}" for i in np.flatnonzero(~np.isfinite(w).all(axis=0))]
+    return problems
+
+
+#: Normals at which the samplers are driven: the axes (walls) and an oblique normal-bin centre, both sides.
+def sampler_normals() -> np.ndarray:
+    import mitsuba as mi
+
+    from .directions import NormalBins
+
+    oblique = to_numpy(NormalBins(5).normal(mi.UInt32([7])))[0]
+    return np.array([(0, 0, 1), (0, 0, -1), (1, 0, 0), oblique, -oblique], dtype=np.float32)
+
+
+@case("samplers", "grid samplers that invert CDFs (sphere_inv, hemi_inv, hemi_rej_plus's policy proposal) at "
+                  "u, uv ∈ {0, 0.5, 1 − 2⁻²⁴} on the most peaked tables: every direction returned above the surface has "
+                  "a positive, finite pdf, and every weight is finite")
+def grid_samplers_extreme_samples() -> dict:
+    import drjit as dr
+    import mitsuba as mi
+
+    u, uv = extreme_samples()
+    lanes = 0
+    for method in ("sarsa-sphere_inv", "sarsa-hemi_inv"):
+        for normal in sampler_normals():
+            # The spike in front of the surface, behind it, and at grazing incidence.
+            for spike in (normal, -normal, np.cross(normal, (0.6, 0.8, 0.0)) + 1e-3 * normal):
+                guide = spiked_guide(method, spike, normal)
+                si, bsdf = diffuse_vertex(normal, len(u))
+                active = dr.full(mi.Bool, True, len(u))
+                bs, weight = guide.sample(None, FixedSampler(mi.Float(u), mi.Point2f(uv[:, 0], uv[:, 1])), si,
+                                          bsdf, mi.BSDFContext(), active)
+                problems = sample_violations(si, bs, weight)
+                check(not problems, f"{method}, normal {tuple(normal)}, spike {tuple(spike)}: {_first(problems)}")
+                lanes += len(u)
+    return {"lanes_checked": lanes}
+
+
+#: Rejection samplers at the worst acceptance rate a table gives them: (method, spike direction relative to the
+#: normal). Uniform proposals are accepted with probability N/(2π·M′): lowest when all of P sits in one bin in front
+#: of the surface (≈ 1/D² for hemi_rej). Policy proposals are accepted with the policy's mean cosine on the
+#: arrival side: about 0 when all of P sits behind the surface.
+WORST_ACCEPTANCE = (("sarsa-hemi_rej", "front"), ("ours-uniform-proposals", "front"), ("ours", "behind"),
+                    ("ours", "grazing"))
+
+
+def _worst_case_guide(method: str, where: str, normal: np.ndarray):
+    spike = {"front": normal, "behind": -normal,
+             "grazing": unit(np.cross(normal, (0.6, 0.8, 0.0)) + 0.05 * normal)[0]}[where]
+    return spiked_guide(method, spike, normal)
+
+
+def chi_square_guide(guide, normal, sample_count: int = 200_000, test_count: int = 1) -> tuple[bool, str]:
+    """Mitsuba's chi-square test of ``guide``'s sampler at a diffuse vertex with ``normal``: do the directions it
+    draws follow the density it reports? (It also fails a density that does not integrate to 1.)"""
+    import drjit as dr
+    import mitsuba as mi
+    from mitsuba.chi2 import ChiSquareTest, SphericalDomain
+
+    def sample_func(sample):
+        size = dr.width(sample)
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(7, size)
+        si, bsdf = diffuse_vertex(normal, size)
+        bs, _ = guide.sample(None, sampler, si, bsdf, mi.BSDFContext(), dr.full(mi.Bool, True, size))
+        return si.to_world(bs.wo)
+
+    def pdf_func(wo):
+        size = dr.width(wo)
+        si, bsdf = diffuse_vertex(normal, size)
+        return guide.pdf(si, bsdf, mi.BSDFContext(), si.to_local(wo), dr.full(mi.Bool, True, size))
+
+    test = ChiSquareTest(domain=SphericalDomain(), sample_func=sample_func, pdf_func=pdf_func, sample_dim=2,
+                         sample_count=sample_count, res=64, ires=32)
+    with contextlib.redirect_stdout(io.StringIO()):    # the test prints its statistics; they are in `messages`
+        passed = test.run(test_count=test_count)
+    return passed, test.messages
+
+
+@case("samplers", "rejection samplers at the worst acceptance rate a table can produce (all of P in one bin, "
+                  "ε → 0): the loop stops after max_proposals, every weight is finite, every direction above the "
+                  "surface has pdf > 0, and the fallback is correctly weighted (chi-square on the sampled density)")
+def rejection_worst_acceptance() -> dict:
+    import drjit as dr
+    import mitsuba as mi
+
+    normal = np.array([0.0, 0.0, 1.0], dtype=np.float32)
+    figures = {}
+    for method, where in WORST_ACCEPTANCE:
+        guide = _worst_case_guide(method, where, normal)
+        size = 100_000
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(1, size)
+        si, bsdf = diffuse_vertex(normal, size)
+        bs, weight = guide.sample(None, sampler, si, bsdf, mi.BSDFContext(), dr.full(mi.Bool, True, size))
+        stats = guide.update(spp_done=10_000)          # reads (and resets) the sampler's counters
+        label = f"{method}, spike {where}"
+        problems = sample_violations(si, bs, weight)
+        check(not problems, f"{label}: {_first(problems)}")
+        check(stats["guided_samples"] == size, f"{label}: {stats['guided_samples']} of {size} samples guided")
+        per_sample = stats["proposals_per_sample"] or 0.0
+        check(per_sample <= guide.max_proposals,
+              f"{label}: {per_sample:.1f} proposals per sample, cap {guide.max_proposals}")
+        passed, messages = chi_square_guide(guide, normal, test_count=len(WORST_ACCEPTANCE))
+        check(passed, f"{label}: chi-square test failed: {messages.strip().splitlines()[-1] if messages else ''}")
+        figures[f"{method}/{where}"] = {"acceptance_rate": stats["acceptance_rate"],
+                                        "proposals_per_sample": per_sample}
+    return figures
+
+
+@case("samplers", "SD-tree sampler on degenerate D-trees (all energy in one leaf at depth 20, denormal and 1e30 "
+                  "energies) at samples in {0, 0.5, 1 − 2⁻²⁴}: every direction above the surface has pdf > 0, "
+                  "every weight is finite")
+def sdtree_sampler_extremes() -> dict:
+    import drjit as dr
+    import mitsuba as mi
+
+    from .guides.sdtree import DeviceForest, Forest
+
+    def chain(depth: int, energy: float, quadrant: int = 3):
+        """A tree whose energy sits in one quadrant ``quadrant`` at every level down to ``depth``."""
+        node: object = energy
+        for _ in range(depth - 1):
+            node = [0.0] * quadrant + [node] + [0.0] * (3 - quadrant)
+        return [0.0] * quadrant + [node] + [0.0] * (3 - quadrant)
+
+    trees = {"one leaf at depth 20": chain(20, 1.0), "one leaf at depth 20, corner 0": chain(20, 1.0, 0),
+             "denormal energies": [1e-40, 1e-45, [1e-40] * 4, 0.0], "1e30 beside 1e-30": [1e30, 1e-30, 0.0, 1e-30]}
+    u, uv = extreme_samples()
+    lanes = 0
+    for method in TREE_METHODS:
+        guide = _tree_guide(method)
+        for name, tree in trees.items():
+            forest = Forest.from_nested([tree])
+            if method == "quadtree-grid":       # every cell of the grid gets the same tree
+                forest = forest.rebuild(np.zeros(guide.S ** 3, dtype=np.int64), "copy")
+            guide._sampling = DeviceForest(forest)
+            for normal in sampler_normals():
+                si, bsdf = diffuse_vertex(normal, len(u), position=(0.3, 0.4, 0.0))
+                bs, weight = guide.sample(None, FixedSampler(mi.Float(u), mi.Point2f(uv[:, 0], uv[:, 1])), si, bsdf,
+                                          mi.BSDFContext(), dr.full(mi.Bool, True, len(u)))
+                problems = sample_violations(si, bs, weight)
+                check(not problems, f"{method}, {name}, normal {tuple(normal)}: {_first(problems)}")
+                lanes += len(u)
+    return {"lanes_checked": lanes}

@@ -184,10 +184,11 @@ class GridGuide(Guide):
         if self.sampler == "sphere_inv":
             wo = self._sample_sphere(sampler, si, vertex, bs.wo)
         elif self.sampler == "hemi_inv":
-            wo = self._sample_hemi_inv(sampler, si, vertex)
+            wo, chosen_bin = self._sample_hemi_inv(sampler, si, vertex)
         else:
             wo = self._sample_rejection(sampler, si, vertex)
-        value, pdf = self._eval_pdf(si, bsdf, bsdf_ctx, vertex, wo)
+        value, pdf = self._eval_pdf(si, bsdf, bsdf_ctx, vertex, wo,
+                                    chosen_bin if self.sampler == "hemi_inv" else None)
 
         guided_weight = dr.select(pdf > 0, value / pdf, 0)
         self._count("guided", 1, guided)
@@ -227,8 +228,13 @@ class GridGuide(Guide):
             vertex.bound = (1 - vertex.mix) * bound + vertex.mix * vertex.mean   # M′
         return vertex
 
-    def _eval_pdf(self, si, bsdf, bsdf_ctx, vertex, wo) -> tuple[mi.Spectrum, mi.Float]:
-        """BSDF value ``f·cos`` and the guided sampler's density at local direction ``wo``."""
+    def _eval_pdf(self, si, bsdf, bsdf_ctx, vertex, wo, chosen_bin=None) -> tuple[mi.Spectrum, mi.Float]:
+        """BSDF value ``f·cos`` and the guided sampler's density at local direction ``wo``.
+
+        ``chosen_bin`` (hemi_inv): the bin ``wo`` was drawn in, whose density is reported. Looking the direction up
+        again can give a neighbour when ``wo`` lies within rounding of a bin boundary, and a neighbour whose CDF
+        step is below float32 resolution (a policy with ε → 0) would report density 0 for a direction with
+        f·cos > 0."""
         table = self.record_table
         guided = vertex.guided
         if self.sampler == "sphere_inv":
@@ -238,7 +244,7 @@ class GridGuide(Guide):
         value = bsdf.eval(bsdf_ctx, si, wo, guided)
         if self.sampler == "hemi_inv":
             row = vertex.pair * table.bins.count
-            k = table.bins.index(si.to_world(wo))
+            k = table.bins.index(si.to_world(wo)) if chosen_bin is None else chosen_bin
             above = dr.gather(mi.Float, table.hemi_cdf, row + k, guided)
             below = dr.gather(mi.Float, table.hemi_cdf, row + k - 1, guided & (k > 0))
             return value, (above - below) / table.bins.solid_angle
@@ -267,11 +273,12 @@ class GridGuide(Guide):
         wo_guide = si.to_local(table.bins.direction(k, sampler.next_2d(use_guide)))
         return dr.select(use_guide, wo_guide, bsdf_wo)
 
-    def _sample_hemi_inv(self, sampler, si, vertex) -> mi.Vector3f:
+    def _sample_hemi_inv(self, sampler, si, vertex) -> tuple[mi.Vector3f, mi.UInt32]:
+        """A direction drawn from the pair's CDF, and the bin it was drawn in."""
         table = self.record_table
         B = table.bins.count
         k = _invert_cdf(table.hemi_cdf, vertex.pair * B, B, sampler.next_1d(vertex.guided), vertex.guided)
-        return si.to_local(table.bins.direction(k, sampler.next_2d(vertex.guided)))
+        return si.to_local(table.bins.direction(k, sampler.next_2d(vertex.guided))), k
 
     def _sample_rejection(self, sampler, si, vertex) -> mi.Vector3f:
         table = self.record_table
