@@ -8,6 +8,7 @@ reported apart); wall time adds the Python tracing of the integrator, which ever
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,7 +92,9 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
     from .scenes import load_scene
 
     rows = []
-    for name, scale in scenes:
+    for number, (name, scale) in enumerate(scenes, 1):
+        print(f"bench: scene {number}/{len(scenes)} {name} (scale {scale:g}): path, brdf, {', '.join(methods)}, "
+              f"{passes} timed passes each", file=sys.stderr, flush=True)
         scene = load_scene(name, scale)
         integrators = {"path": mi.load_dict({"type": "path", "max_depth": max_depth})}
         for method in dict.fromkeys(["brdf", *methods]):

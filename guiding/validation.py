@@ -53,7 +53,7 @@ def unbiasedness_table(scene_name: str = "door-ajar", scale: float = 0.1, passes
     from .scenes import load_scene
 
     scene = load_scene(scene_name, scale)
-    methods = methods or [f"{rule}-{sampler}" for rule in RULES for sampler in SAMPLERS]
+    methods = methods or [f"{rule}-{sampler}" for rule in RULES for sampler in SAMPLERS] + ["ours-uniform-proposals"]
     reference = pass_means(scene, mi.load_dict({"type": "path", "max_depth": 16}), passes, spp, seed=1000)
     rows = []
     for method in methods:
@@ -69,7 +69,8 @@ def unbiasedness_table(scene_name: str = "door-ajar", scale: float = 0.1, passes
 
 
 def learning_table(scene_name: str = "door-ajar", scale: float = 0.25, spp: int = 256, reference_spp: int = 4096,
-                   methods: tuple[str, ...] = ("brdf", "ours", "ours-no-rejopt", "ours-expected")) -> pd.DataFrame:
+                   methods: tuple[str, ...] = ("brdf", "ours", "ours-uniform-proposals", "ours-no-rejopt",
+                                               "ours-expected")) -> pd.DataFrame:
     """MAE, relMSE, hit rate and time of each method at equal spp against a `path` reference."""
     import pandas as pd
 
