@@ -221,11 +221,13 @@ class _IterationImages:
     def add_pass(self, image, spp: int) -> None:
         """Add a pass image (a device tensor) of ``spp`` samples per pixel (inside the pass's timed region)."""
         x = mi.TensorXd(image)
+        if self.passes == 0:
+            # A new iteration starts from evaluated zeros (not literals), so that every pass runs the same
+            # accumulation kernel: a different first pass would be compiled in the second pass of a render.
+            self.first, self.second = dr.zeros(mi.TensorXd, x.shape), dr.zeros(mi.TensorXd, x.shape)
+            dr.make_opaque(self.first, self.second)
         weighted = x * spp
-        if self.passes == 0:   # the sums of a finished iteration are simply replaced
-            self.first, self.second = weighted, weighted * x
-        else:
-            self.first, self.second = self.first + weighted, self.second + weighted * x
+        self.first, self.second = self.first + weighted, self.second + weighted * x
         dr.eval(self.first, self.second)
         self.spp += spp
         self.passes += 1

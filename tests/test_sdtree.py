@@ -441,7 +441,9 @@ def test_progressive_render_statistics_and_one_kernel(cornell):
     for key in ("stree_leaves", "dtree_nodes_mean", "dtree_nodes_max", "memory_bytes", "refine_seconds"):
         assert all(key in s for s in stats), key
     assert stats[-1]["stree_leaves"] > 1 and stats[-1]["dtree_nodes_max"] > 85
-    assert [p.kernels_compiled for p in result.passes[1:]] == [0] * 15   # refinement never recompiles the render
+    # Refinement never recompiles the render; only the final iteration, which records nothing, has a kernel of its
+    # own (pass 7, the first after 56 spp: compiled there unless Dr.Jit's disk cache already holds it).
+    assert [p.kernels_compiled for p in result.passes[1:] if p.index != 7] == [0] * 14
     assert np.isfinite(result.image).all()
 
 
