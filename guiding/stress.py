@@ -1021,3 +1021,428 @@ def sdtree_sampler_extremes() -> dict:
                 check(not problems, f"{method}, {name}, normal {tuple(normal)}: {_first(problems)}")
                 lanes += len(u)
     return {"lanes_checked": lanes}
+
+
+# =====================================================================================================================
+#  Learning targets
+# =====================================================================================================================
+#: Longest path of the synthetic batches (the renderer's default max_depth).
+TARGET_DEPTH = 16
+#: Emitted radiance at hostile vertices: none, ordinary, extreme and the largest float32.
+HOSTILE_EMISSION = (0.0, 1.0, 1e30, 3e38)
+#: Densities of the directions sampled at hostile vertices (the weight is 0.5/pdf): ordinary, tiny, and the
+#: smallest normal float32 (weights 0.5, 5e29, 2.5e37). The last vertex of every path has pdf 0 and weight 0.
+HOSTILE_PDF = (1.0, 1e-30, 2e-38)
+
+
+@dataclass
+class SyntheticPaths:
+    """A batch of paths on :func:`floor_scene` fed to a guide's ``record`` vertex by vertex.
+
+    ``length[l]`` vertices for lane ``l`` (every length 1 … TARGET_DEPTH occurs); at depth ``j`` all lanes leave
+    in the direction of sphere bin ``j`` (D = 4: one bin per depth). ``emitted``, ``pdf`` and ``weight`` are
+    ``(lanes, depth)`` arrays; a path's last vertex has pdf 0 and weight 0. ``position`` is the lanes' (x, y).
+    """
+
+    length: np.ndarray
+    emitted: np.ndarray
+    pdf: np.ndarray
+    weight: np.ndarray
+    position: tuple
+
+    @classmethod
+    def benign(cls, position=(-0.5, -0.5)) -> "SyntheticPaths":
+        """Emission 1 and weight 0.5 everywhere: targets with closed forms."""
+        length = np.arange(1, TARGET_DEPTH + 1)
+        shape = (len(length), TARGET_DEPTH)
+        return cls(length, np.ones(shape), np.ones(shape), np.full(shape, 0.5), position)._end_paths()
+
+    @classmethod
+    def hostile(cls, position=(0.5, 0.5)) -> "SyntheticPaths":
+        """Every length four times, with every combination of HOSTILE_EMISSION and HOSTILE_PDF along the paths."""
+        length = np.tile(np.arange(1, TARGET_DEPTH + 1), 4)
+        lane, depth = np.meshgrid(np.arange(len(length)), np.arange(TARGET_DEPTH), indexing="ij")
+        emitted = np.array(HOSTILE_EMISSION)[(lane + depth) % len(HOSTILE_EMISSION)]
+        pdf = np.array(HOSTILE_PDF)[(lane // TARGET_DEPTH + 2 * depth) % len(HOSTILE_PDF)]
+        weight = (np.float32(0.5) / pdf.astype(np.float32)).astype(np.float64)
+        return cls(length, emitted, pdf, weight, position)._end_paths()
+
+    def _end_paths(self) -> "SyntheticPaths":
+        depth = np.arange(TARGET_DEPTH)[None, :]
+        last = depth == self.length[:, None] - 1
+        self.pdf, self.weight = np.where(last, 0.0, self.pdf), np.where(last, 0.0, self.weight)
+        return self
+
+    @property
+    def lanes(self) -> int:
+        return len(self.length)
+
+    def continues(self, depth: int) -> np.ndarray:
+        return depth < self.length - 1
+
+    def records(self) -> int:
+        """Targets a grid guide records: one per segment after the camera's, ``Σ (length − 1)``."""
+        return int(np.sum(self.length - 1))
+
+    def run(self, guide) -> None:
+        """Feed the batch to ``guide`` (``new_paths``, ``record`` at every depth, ``finish_paths``)."""
+        import drjit as dr
+        import mitsuba as mi
+
+        from .directions import SphereBins
+
+        scene = floor_scene()
+        origin = mi.Point3f(self.position[0], self.position[1], 1)
+        si = scene.ray_intersect(mi.Ray3f(origin, mi.Vector3f(0, 0, -1)))
+        si = dr.gather(type(si), si, dr.zeros(mi.UInt32, self.lanes))      # the same vertex in every lane
+        directions = SphereBins(4).centres()
+        state = guide.new_paths(self.lanes, TARGET_DEPTH)
+        for depth in range(TARGET_DEPTH):
+            bs = dr.zeros(mi.BSDFSample3f, self.lanes)
+            bs.wo = si.to_local(dr.gather(mi.Vector3f, directions, mi.UInt32(depth)))
+            bs.pdf = mi.Float(self.pdf[:, depth].astype(np.float32))
+            with np.errstate(over="ignore"):
+                emitted = mi.Color3f(mi.Float(self.emitted[:, depth].astype(np.float32)))
+                weight = mi.Color3f(mi.Float(self.weight[:, depth].astype(np.float32)))
+            active = mi.Bool(depth < self.length)
+            state = guide.record(state, si, emitted, bs, weight, mi.Bool(self.continues(depth)), active)
+        guide.finish_paths(state)
+
+    def expected_grid_targets(self, rule: str) -> dict[int, tuple[float, int]]:
+        """{depth i: (sum of targets, count)} recorded into the bin of depth i's direction by a guide with all-zero
+        tables: MC records ``L_{i+1} = Σ_m Le_m Π w`` at every vertex that continues; SARSA and Expected SARSA
+        (no memo yet) record ``Le_{i+1}`` for the segment i → i+1."""
+        out = {}
+        for i in range(TARGET_DEPTH - 1):
+            lanes = np.flatnonzero(self.continues(i))
+            if not len(lanes):
+                continue
+            if rule == "mc":
+                radiance = np.zeros(len(lanes))
+                for m in range(TARGET_DEPTH - 1, i, -1):
+                    alive = m < self.length[lanes]
+                    radiance = np.where(alive, self.emitted[lanes, m] + self.weight[lanes, m] * radiance, radiance)
+                targets = radiance
+            else:
+                targets = self.emitted[lanes, i + 1]
+            out[i] = (float(np.sum(targets)), len(lanes))
+        return out
+
+
+@case("targets", "learning targets of MC, SARSA and Expected SARSA for paths ending at every depth 1-16: benign "
+                 "paths record exactly the hand-computed targets and counts; paths with emission up to 3e38 and "
+                 "pdfs down to 2e-38 (weights to 2.5e37) record the right number of targets and the update leaves "
+                 "every table finite")
+def grid_learning_targets() -> dict:
+    from .directions import SphereBins
+
+    figures = {}
+    for rule in ("mc", "sarsa", "expected_sarsa"):
+        guide = _grid_guide(f"{rule}-hemi_rej_plus", S=2, D=4)
+        record = guide.record_table
+        record.set_bounds(floor_scene().bbox())
+        benign, hostile = SyntheticPaths.benign(), SyntheticPaths.hostile()
+        benign.run(guide)
+        hostile.run(guide)
+        sums, counts = np.array(record.acc_sum), np.array(record.acc_count)
+        B = record.bins.count
+        cell = {name: int(np.array(record.cell(_vectors(np.array([[*paths.position, 0.0]]))))[0])
+                for name, paths in (("benign", benign), ("hostile", hostile))}
+        check(cell["benign"] != cell["hostile"], "the benign and hostile paths share a grid cell")
+        bins = np.array(SphereBins(4).index(SphereBins(4).centres()))
+        for depth, (total, count) in benign.expected_grid_targets(rule).items():
+            entry = cell["benign"] * B + bins[depth]
+            check(counts[entry] == count and abs(sums[entry] - total) <= 1e-6 * total,
+                  f"{rule}, depth {depth + 1}: recorded (sum {sums[entry]}, count {counts[entry]}), expected "
+                  f"({total}, {count})")
+        recorded = counts.reshape(-1, B)[cell["hostile"]].sum()
+        check(recorded == hostile.records(), f"{rule}: hostile paths recorded {recorded} targets, expected "
+                                             f"{hostile.records()}")
+        stats = guide.update(spp_done=8)
+        problems = record_violations(record)
+        check(not problems, f"{rule}: {_first(problems)}")
+        figures[rule] = {"dropped_entries": stats["dropped_entries"], "clamped_entries": stats["clamped_entries"]}
+    return figures
+
+
+@case("targets", "SD-tree recording (L/pdf into the leaves) for paths ending at every depth 1-16 with emission "
+                 "up to 3e38 and pdfs down to 2e-38 or 0: the vertex counts are exact and the D-trees built from "
+                 "them are finite")
+def sdtree_learning_targets() -> dict:
+    figures = {}
+    for method in TREE_METHODS:
+        guide = _tree_guide(method)
+        paths = SyntheticPaths.hostile()
+        paths.run(guide)
+        guide._splat_logs()
+        counts = np.array(guide._count_acc)
+        recorded_vertices = int(np.sum(paths.length - 1))     # every vertex that continues has pdf > 0
+        check(counts.sum() == recorded_vertices,
+              f"{method}: {counts.sum()} vertices recorded, expected {recorded_vertices}")
+        stats = guide.update(getattr(guide, "iteration_end_spp", 8))
+        problems = forest_violations(guide._sampling)
+        check(not problems, f"{method}: {_first(problems)}")
+        figures[method] = {"dropped_entries": stats.get("dropped_entries")}
+    return figures
+
+
+# =====================================================================================================================
+#  Scenes
+# =====================================================================================================================
+#: Methods every scene is rendered with: the baseline, the paper's method, and the SD-tree.
+SCENE_METHODS = ("brdf", "ours", "sdtree")
+#: Film side (pixels), passes and spp per pass of the scene cases: small, so the suite stays fast.
+SCENE_PIXELS, SCENE_PASSES, SCENE_PASS_SPP = 16, 8, 4
+ALBEDO = 0.5
+
+
+def _transform(offset: float = 0.0, scale: float = 1.0):
+    """``x ↦ scale·x + offset`` (on every axis), applied to a whole scene: shapes and camera."""
+    import mitsuba as mi
+
+    return mi.ScalarTransform4f().translate([offset] * 3) @ mi.ScalarTransform4f().scale(scale)
+
+
+def _sensor(origin, target, up=(0, 0, 1), fov: float = 50, scale: float = 1.0, transform=None) -> dict:
+    """A perspective camera; with the scene scaled by ``scale``, its clip planes scale too (Mitsuba's default far
+    plane, 1e4, would cut a scene of size 1e5 out of the picture)."""
+    import mitsuba as mi
+
+    transform = transform or _transform()
+    return {"type": "perspective", "fov": fov, "near_clip": 1e-2 * scale, "far_clip": 1e4 * scale,
+            "to_world": mi.ScalarTransform4f().look_at(transform @ mi.ScalarPoint3f(origin),
+                                                       transform @ mi.ScalarPoint3f(target), up),
+            "film": {"type": "hdrfilm", "width": SCENE_PIXELS, "height": SCENE_PIXELS, "rfilter": {"type": "box"}},
+            "sampler": {"type": "independent"}}
+
+
+def _diffuse(albedo: float = ALBEDO) -> dict:
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": albedo}}
+
+
+def closed_room(light_radius: float | None = 0.25, light_radiance: float = 10.0) -> dict:
+    """A closed diffuse box [-1, 1]³ seen from inside, with a spherical light near the ceiling (or none)."""
+    import mitsuba as mi
+
+    scene = {"type": "scene", "sensor": _sensor((0, -0.9, 0), (0, 1, 0), fov=80),
+             "room": {"type": "cube", "flip_normals": True, "bsdf": _diffuse()},
+             "box": {"type": "cube", "to_world": mi.ScalarTransform4f().translate([0.3, 0.3, -0.7]).scale(0.3),
+                     "bsdf": _diffuse(0.8)}}
+    if light_radius is not None:
+        scene["light"] = {"type": "sphere", "center": [0, 0.2, 0.6], "radius": light_radius,
+                          "emitter": {"type": "area", "radiance": {"type": "rgb", "value": light_radiance}}}
+    return scene
+
+
+def open_plane(with_cube: bool = True, offset: float = 0.0, scale: float = 1.0) -> dict:
+    """A diffuse plane (z = 0, side 8), optionally a cube standing on it, under a uniform sky of radiance 1, seen
+    from above; moved to ``offset`` and scaled by ``scale`` (geometry and camera)."""
+    import mitsuba as mi
+
+    transform = _transform(offset, scale)
+    scene = {"type": "scene", "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+             "plane": {"type": "rectangle", "to_world": transform @ mi.ScalarTransform4f().scale(4),
+                       "bsdf": _diffuse()}}
+    if with_cube:
+        scene["sensor"] = _sensor((0, -3, 2.5), (0, 0, 0.3), scale=scale, transform=transform)
+        scene["cube"] = {"type": "cube", "bsdf": _diffuse(0.8), "to_world": transform @ mi.ScalarTransform4f()
+                         .translate([0, 0, 0.5]).scale(0.5)}
+    else:
+        scene["sensor"] = _sensor((0, 0, 2), (0, 0, 0), up=(0, 1, 0), fov=40, scale=scale, transform=transform)
+    return scene
+
+
+@dataclass
+class SceneRun:
+    """One progressive render of a stress scene: per-pass images ``(passes, H, W, 3)`` and their means
+    ``(passes, 3)``, the final image, the per-pass statistics (:class:`~guiding.render.PassStats`) and the guide."""
+
+    method: str
+    pass_images: np.ndarray
+    image: np.ndarray
+    passes: list
+    guide: object
+
+    @property
+    def means(self) -> np.ndarray:
+        return self.pass_images.mean(axis=(1, 2))
+
+
+def render_scene(scene_dict: dict, method: str, max_depth: int = 16, seed: int = 0,
+                 passes: int = SCENE_PASSES) -> SceneRun:
+    """Render a scene (a ``mi.load_dict`` dictionary) with ``method``: ``passes`` passes of SCENE_PASS_SPP spp."""
+    import mitsuba as mi
+
+    from .integrator import GuidedPathIntegrator
+    from .methods import make_guide
+    from .render import Budget, render
+
+    props = mi.Properties()
+    props["max_depth"] = max_depth
+    integrator = GuidedPathIntegrator(props, guide=make_guide(method))
+    images = []
+    result = render(mi.load_dict(scene_dict), integrator, Budget(spp=passes * SCENE_PASS_SPP,
+                                                                 pass_spp=SCENE_PASS_SPP),
+                    seed=seed, progress=False, on_pass=lambda stats, image: images.append(image))
+    return SceneRun(method, np.array(images), result.image, result.passes, integrator.guide)
+
+
+def _nonfinite_numbers(value, path: str = "") -> list[str]:
+    """Paths of the non-finite numbers in a nested statistics dictionary."""
+    if isinstance(value, dict):
+        return [p for key, item in value.items() for p in _nonfinite_numbers(item, f"{path}.{key}")]
+    if isinstance(value, (list, tuple)):
+        return [p for i, item in enumerate(value) for p in _nonfinite_numbers(item, f"{path}[{i}]")]
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and not np.isfinite(value):
+        return [f"{path} = {value}"]
+    return []
+
+
+def scene_run_violations(run: SceneRun) -> list[str]:
+    """What is not sane about a render: a non-finite pixel or pass mean, a hit rate outside [0, 1], a non-finite
+    statistic, an invalid share or acceptance rate outside [0, 1], proposals per sample above the cap, accumulator
+    entries dropped or clamped (a physical scene has no bad input), or invalid guide tables."""
+    problems = []
+    if not np.isfinite(run.image).all():
+        problems.append(f"{np.count_nonzero(~np.isfinite(run.image).all(axis=-1))} non-finite pixels")
+    if not np.isfinite(run.means).all():
+        problems.append("a non-finite pass mean")
+    for p in run.passes:
+        if not 0 <= p.hit_rate <= 1:
+            problems.append(f"pass {p.index}: hit rate {p.hit_rate}")
+        problems += [f"pass {p.index}: {item}" for item in _nonfinite_numbers(p.guide, "guide")]
+        for key in ("invalid_share", "acceptance_rate"):
+            if p.guide.get(key) is not None and not 0 <= p.guide[key] <= 1:
+                problems.append(f"pass {p.index}: {key} = {p.guide[key]}")
+        if (p.guide.get("proposals_per_sample") or 0) > getattr(run.guide, "max_proposals", np.inf):
+            problems.append(f"pass {p.index}: {p.guide['proposals_per_sample']} proposals per sample")
+        for key in ("dropped_entries", "clamped_entries"):
+            if p.guide.get(key):
+                problems.append(f"pass {p.index}: {p.guide[key]} accumulator entries {key.split('_')[0]}")
+    if hasattr(run.guide, "record_table"):
+        problems += record_violations(run.guide.record_table)
+    elif getattr(run.guide, "_sampling", None) is not None:
+        problems += forest_violations(run.guide._sampling)
+    return problems
+
+
+def mean_difference_excess(means, expected) -> float:
+    """How far the mean of per-pass means is from ``expected`` (a number, or another run's per-pass means), in
+    units of the allowed difference: Z_LIMIT standard errors of the difference plus float32 rounding of the
+    values (8 ε₃₂, for estimators without variance). ≤ 1 means they agree."""
+    from .validation import Z_LIMIT
+
+    means = np.asarray(means, dtype=np.float64)
+    variance = means.var(axis=0, ddof=1) / len(means)
+    if isinstance(expected, np.ndarray):
+        variance = variance + expected.var(axis=0, ddof=1) / len(expected)
+        expected = expected.mean(axis=0)
+    allowed = Z_LIMIT * np.sqrt(variance) + 8 * EPS32 * np.abs(expected)
+    return float(np.max(np.abs(means.mean(axis=0) - expected) / np.maximum(allowed, TINY32)))
+
+
+def _check_runs(scene_name: str, runs: dict) -> dict:
+    """Check every run of a scene with :func:`scene_run_violations`; returns each method's image mean."""
+    for method, run in runs.items():
+        problems = scene_run_violations(run)
+        check(not problems, f"{scene_name}, {method}: {_first(problems)}")
+    return {method: float(run.means.mean()) for method, run in runs.items()}
+
+
+@case("scenes", "a scene without an emitter renders a black image (exactly 0), hit rate 0, finite statistics and "
+                "all-zero finite guide tables")
+def scene_without_emitter() -> dict:
+    runs = {method: render_scene(closed_room(light_radius=None), method) for method in SCENE_METHODS}
+    figures = _check_runs("no emitter", runs)
+    for method, run in runs.items():
+        check(not run.image.any(), f"{method}: {np.count_nonzero(run.image)} non-zero pixel values")
+        check(all(p.hit_rate == 0 for p in run.passes), f"{method}: hit rates {[p.hit_rate for p in run.passes]}")
+        if hasattr(run.guide, "record_table"):
+            check(not np.array(run.guide.record_table.q).any(), f"{method}: Q is not all zero")
+    return figures
+
+
+@case("scenes", "a flat bounding box (a single plane: zero extent along z) under a uniform sky: finite, sane, and "
+                "every method's mean equals the exact albedo × sky radiance within 4 standard errors")
+def scene_with_flat_bounding_box() -> dict:
+    import mitsuba as mi
+
+    scene = open_plane(with_cube=False)
+    extent = np.array(mi.load_dict(scene).bbox().extents())
+    check(extent[2] == 0, f"the test scene's bounding box is not flat: extent {extent}")
+    runs = {method: render_scene(scene, method) for method in SCENE_METHODS}
+    figures = _check_runs("flat bounding box", runs)
+    for method, run in runs.items():
+        excess = mean_difference_excess(run.means, ALBEDO * 1.0)
+        check(excess <= 1, f"{method}: mean {run.means.mean():.6g} vs exact {ALBEDO} ({excess:.2f} x allowed)")
+    return figures
+
+
+@case("scenes", "the same scene at the origin, scaled by 1e5 and moved to coordinates 1e5: finite and sane; the "
+                "scaled scene's image mean agrees with the origin's within 4 standard errors, the moved scene's "
+                "difference is measured (float32 geometry and Mitsuba's ray offsets grow with |p|)")
+def scene_at_1e5_coordinates() -> dict:
+    figures = {}
+    for method in SCENE_METHODS:
+        runs = {"origin": render_scene(open_plane(), method, seed=1),
+                "scale 1e5": render_scene(open_plane(scale=1e5), method, seed=2),
+                "offset 1e5": render_scene(open_plane(offset=1e5), method, seed=3)}
+        means = _check_runs(f"1e5 coordinates ({method})", runs)
+        excess = mean_difference_excess(runs["scale 1e5"].means, runs["origin"].means)
+        check(excess <= 1, f"{method}, scale 1e5: mean {means['scale 1e5']:.6g} vs {means['origin']:.6g} at the "
+                           f"origin ({excess:.2f} x allowed)")
+        figures[method] = {**means, "offset_relative_difference": means["offset 1e5"] / means["origin"] - 1,
+                           "offset_difference_in_allowed": mean_difference_excess(runs["offset 1e5"].means,
+                                                                                  runs["origin"].means)}
+    return figures
+
+
+@case("scenes", "a tiny (radius 0.02 in a room of side 2), extremely bright (radiance 1e20) emitter, found by a "
+                "few paths: fireflies stay finite, statistics and guide tables stay finite, nothing is sanitised, "
+                "and the metrics of the image are finite")
+def scene_with_tiny_bright_emitter() -> dict:
+    from .metrics import evaluate
+
+    runs = {method: render_scene(closed_room(light_radius=0.02, light_radiance=1e20), method)
+            for method in SCENE_METHODS}
+    figures = _check_runs("tiny bright emitter", runs)
+    for method, run in runs.items():
+        check(any(p.hit_rate > 0 for p in run.passes), f"{method}: no path found the emitter (no fireflies)")
+        metrics = evaluate(run.image, np.zeros_like(run.image))
+        check(all(metrics[key] is not None for key in ("mae", "mae_hdr", "relmse")), f"{method}: metrics {metrics}")
+        figures[f"{method}_max_pixel"] = float(run.image.max())
+    return figures
+
+
+@case("scenes", "max depth 1 (only directly visible emitters): every method gives the same image, the emitter's "
+                "radiance where it is seen and 0 elsewhere, and learns nothing")
+def scene_with_max_depth_1() -> dict:
+    radiance = 10.0
+    runs = {method: render_scene(closed_room(light_radius=0.6, light_radiance=radiance), method, max_depth=1)
+            for method in SCENE_METHODS}
+    figures = _check_runs("max depth 1", runs)
+    reference = runs["brdf"].pass_images
+    check(reference.max() > 0, "the emitter is not in view")
+    for method, run in runs.items():
+        # Pass by pass (the SD-tree's final image holds its last iteration only).
+        check(np.array_equal(run.pass_images, reference), f"{method}: pass images differ from brdf's")
+        check(((run.image >= 0) & (run.image <= radiance * (1 + 4 * EPS32))).all(),
+              f"{method}: pixel values outside [0, {radiance}]")
+        if hasattr(run.guide, "record_table"):
+            check(not np.array(run.guide.record_table.acc_count).any(), f"{method}: recorded targets")
+    return figures
+
+
+@case("scenes", "S = D = 1 (one cell, two direction bins) for every sampler: finite, sane, and agreeing with brdf "
+                "within 4 standard errors")
+def scene_with_one_cell_and_one_bin() -> dict:
+    from .guides import SAMPLERS
+
+    methods = ["brdf", *(f"sarsa-{sampler}-S1-D1" for sampler in SAMPLERS), "ours-expected-S1-D1"]
+    runs = {method: render_scene(open_plane(), method, seed=i) for i, method in enumerate(methods)}
+    figures = _check_runs("S = D = 1", runs)
+    for method, run in runs.items():
+        excess = mean_difference_excess(run.means, runs["brdf"].means)
+        check(excess <= 1, f"{method}: mean {figures[method]:.6g} vs brdf {figures['brdf']:.6g} "
+                           f"({excess:.2f} x allowed)")
+    return figures
