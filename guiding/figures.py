@@ -118,8 +118,8 @@ def comparison(job: dict, out: str | Path) -> None:
 
 # ------------------------------------------------------------------------------------------ convergence
 
-def convergence_series(rows: list[dict]) -> dict[str, dict[str, list[tuple[float, float]]]]:
-    """scene → label → [(render seconds, MAE)], sorted by time.
+def convergence_series(rows: list[dict], metric: str = "mae") -> dict[str, dict[str, list[tuple[float, float]]]]:
+    """scene → label → [(render seconds, ``metric``)], sorted by time.
 
     Renders with per-pass snapshots (more than one curve point) give their whole curve (first seed); otherwise
     each render gives one point (its final image) and the seeds are averaged per budget."""
@@ -131,11 +131,11 @@ def convergence_series(rows: list[dict]) -> dict[str, dict[str, list[tuple[float
         if any(len(r.get("curve", [])) > 1 for r in items):
             first_seed = min(r["seed"] for r in items)
             best = max((r for r in items if r["seed"] == first_seed), key=lambda r: r["stats"]["spp"])
-            points = [(c["render_seconds"], c["mae"]) for c in best["curve"]]
+            points = [(c["render_seconds"], c.get(metric)) for c in best["curve"]]
         else:
             by_budget = defaultdict(list)
             for r in items:
-                by_budget[r["budget"]].append((r["render_seconds"], r["mae"]))
+                by_budget[r["budget"]].append((r["render_seconds"], r.get(metric)))
             points = [(float(np.mean([p[0] for p in pts])),
                        float(np.mean([p[1] for p in pts])) if all(p[1] is not None for p in pts) else math.nan)
                       for pts in by_budget.values()]
@@ -143,31 +143,44 @@ def convergence_series(rows: list[dict]) -> dict[str, dict[str, list[tuple[float
     return series
 
 
+#: Rows of the convergence figure: (curve metric, y label, its value at time t). The two efficiency rows are
+#: error × time, flat for an estimator whose error falls as 1/t; lower is more efficient.
+CONVERGENCE_ROWS = (
+    ("mae", "MAE (tone-mapped)", lambda error, t: error),
+    ("mae", "MAE² · t (efficiency)", lambda error, t: error ** 2 * t),
+    ("relmse", "relMSE · t (efficiency)", lambda error, t: error * t),
+)
+
+
 def convergence(job: dict, metrics_files: list[str], out: str | Path) -> None:
-    """Error against time: one panel per scene, one line per method (log axes where the data spans enough)."""
+    """Error, and error × time, against time: one column per scene, one line per method (log axes where the
+    data spans enough)."""
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
     rows = [json.loads(Path(p).read_text()) for p in metrics_files]
-    series = convergence_series(rows)
-    scenes = [s for s in job.get("scenes", sorted(series)) if s in series]
-    figure = _figure(4.2 * len(scenes), 3.4)
-    axes = figure.subplots(1, len(scenes), squeeze=False)[0]
-    for ax, scene in zip(axes, scenes):
-        for label, points in series[scene].items():
-            times, errors = zip(*points)
-            ax.plot(times, errors, marker="o", markersize=3, label=label)
-        times = [t for points in series[scene].values() for t, _ in points]
-        errors = [e for points in series[scene].values() for _, e in points if np.isfinite(e)]
-        for axis, setter, values in ((ax.xaxis, ax.set_xscale, times), (ax.yaxis, ax.set_yscale, errors)):
-            if values and min(values) > 0 and max(values) / min(values) > 3:  # log only where it spans enough
-                setter("log")
-                axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
-                axis.set_minor_formatter(NullFormatter())
-        ax.set_title(scene, fontsize=10)
-        ax.set_xlabel("render + update seconds (compilation excluded)", fontsize=8)
-        ax.set_ylabel("MAE (tone-mapped)", fontsize=8)
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+    drawn = convergence_series(rows)
+    scenes = [s for s in job.get("scenes", sorted(drawn)) if s in drawn]
+    figure = _figure(4.2 * len(scenes), 3.0 * len(CONVERGENCE_ROWS))
+    grid = figure.subplots(len(CONVERGENCE_ROWS), len(scenes), squeeze=False)
+    for (metric, ylabel, value), axes in zip(CONVERGENCE_ROWS, grid):
+        series = convergence_series(rows, metric)
+        for ax, scene in zip(axes, scenes):
+            curves = {label: [(t, value(e, t)) for t, e in points] for label, points in series[scene].items()}
+            for label, points in curves.items():
+                times, values = zip(*points)
+                ax.plot(times, values, marker="o", markersize=3, label=label)
+            times = [t for points in curves.values() for t, _ in points]
+            values = [v for points in curves.values() for _, v in points if np.isfinite(v)]
+            for axis, setter, data in ((ax.xaxis, ax.set_xscale, times), (ax.yaxis, ax.set_yscale, values)):
+                if data and min(data) > 0 and max(data) / min(data) > 3:  # log only where it spans enough
+                    setter("log")
+                    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
+                    axis.set_minor_formatter(NullFormatter())
+            ax.set_title(scene, fontsize=10)
+            ax.set_xlabel("render + update seconds (compilation excluded)", fontsize=8)
+            ax.set_ylabel(ylabel, fontsize=8)
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend(fontsize=7)
     figure.suptitle(job.get("title", "Error against time"), fontsize=10)
     _save(figure, out)
 
