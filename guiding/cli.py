@@ -1,13 +1,14 @@
-"""Command line: ``python -m guiding {render, reference, evaluate, demo, scenes, methods}``.
+"""Command line: ``python -m guiding {render, reference, evaluate, bench, demo, validate, stress, scenes, methods}``.
 
 Bad input ends with one line on stderr and a non-zero exit, before any output is written; an interrupted run
-leaves no output files behind (they are written atomically, last of all).
+(Ctrl-C: exit code 130) leaves no output files behind (they are written atomically, together, last of all).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import socket
@@ -43,9 +44,21 @@ def _positive_int(text: str) -> int:
 
 def _positive_float(text: str) -> float:
     value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    if not (value > 0 and math.isfinite(value)):   # inf would make an endless budget or an infinite resolution
+        raise argparse.ArgumentTypeError(f"must be > 0 and finite, got {text}")
     return value
+
+
+def _memory_size(text: str) -> int:
+    from .methods import parse_size
+
+    try:
+        size = parse_size(text)
+    except GuidingError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    if size <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return size
 
 
 def _add_backend_options(parser: argparse.ArgumentParser) -> None:
@@ -81,6 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "four weighted by their inverse variance (default last)")
     render.add_argument("--snapshots", action="store_true",
                         help="also write the image after every pass_spp*2^k spp as image_snapNNNNN.exr")
+    render.add_argument("--memory-limit", type=_memory_size, default=None,
+                        help="largest guide tables allowed, e.g. 512M or 16G (default $GUIDING_MEMORY_LIMIT or 8G)")
     _add_backend_options(render)
 
     reference = commands.add_parser("reference", help="render a reference with Mitsuba's `path` integrator")
@@ -117,6 +132,13 @@ def build_parser() -> argparse.ArgumentParser:
     validate.add_argument("--out", default="results")
     validate.add_argument("--quick", action="store_true", help="smaller budgets (a smoke run)")
     _add_backend_options(validate)
+
+    stress = commands.add_parser("stress", help="numerical stability and bad-input cases, written to "
+                                 "results/stress.md")
+    stress.add_argument("--out", default="results", help="output folder of stress.md (default results)")
+    stress.add_argument("--cases", default=None, help="comma-separated case names (default: all)")
+    stress.add_argument("--variant", default="llvm_ad_rgb", help="the cases measure the CPU backend (default)")
+    stress.add_argument("--threads", type=_positive_int, default=2, help="CPU worker threads (default 2, as CI)")
 
     commands.add_parser("scenes", help="list the scenes on the search path")
     commands.add_parser("methods", help="list the method names")
@@ -173,8 +195,13 @@ def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget
 
     scene = load_scene(scene_name, args.scale, args.scene_dir)
     snapshots = SnapshotWriter(out) if getattr(args, "snapshots", False) else None
-    result = render(scene, integrator, budget, seed=args.seed, progress=False if args.quiet else None,
-                    combine=getattr(args, "combine", "last"), snapshot=snapshots)
+    try:
+        result = render(scene, integrator, budget, seed=args.seed, progress=False if args.quiet else None,
+                        combine=getattr(args, "combine", "last"), snapshot=snapshots)
+    except BaseException:   # interrupted or failed: snapshots written so far are partial outputs
+        for entry in snapshots.entries if snapshots is not None else []:
+            (out / entry["file"]).unlink(missing_ok=True)
+        raise
     film_size = [int(v) for v in scene.sensors()[0].film().size()]
     stats = {"scene": scene_name, "scene_file": str(find_scene(scene_name, args.scene_dir)), "scale": args.scale,
              "resolution": film_size, "method": method, "seed": args.seed, "max_depth": args.max_depth,
@@ -182,10 +209,11 @@ def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget
              "provenance": _provenance(variant, args.threads), "per_pass": [asdict(p) for p in result.passes]}
     if snapshots is not None:
         stats["snapshots"] = snapshots.entries  # stats.json is written last: only the files it lists are complete
-    imageio.write_exr(out / "image.exr", result.image)
-    imageio.write_png(out / "preview.png", result.image)
-    with imageio.atomic_path(out / "stats.json") as tmp, open(tmp, "w") as file:
-        json.dump(stats, file, indent=1)
+    with imageio.atomic_outputs(out / "image.exr", out / "preview.png", out / "stats.json") as (exr, png, js):
+        imageio.write_exr(exr, result.image)
+        imageio.write_png(png, result.image)
+        with open(js, "w") as file:
+            json.dump(stats, file, indent=1)
     return stats
 
 
@@ -197,10 +225,10 @@ def _command_render(args) -> None:
 
     budget = Budget(spp=args.spp, seconds=args.seconds, pass_spp=args.pass_spp, exclude_passes=args.exclude_passes)
     find_scene(args.scene, args.scene_dir)
-    check_method(args.method)
-    out = _prepare_output_dir(args.out)
+    check_method(args.method, args.memory_limit)
     variant = set_variant(args.variant, args.threads)
-    guide = make_guide(args.method)
+    out = _prepare_output_dir(args.out)
+    guide = make_guide(args.method, args.memory_limit)
     from .integrator import GuidedPathIntegrator
     import mitsuba as mi
 
@@ -219,8 +247,8 @@ def _command_reference(args) -> None:
 
     budget = Budget(spp=args.spp, pass_spp=min(args.pass_spp, args.spp))
     find_scene(args.scene, args.scene_dir)
-    out = _prepare_output_dir(args.out)
     variant = set_variant(args.variant, args.threads)
+    out = _prepare_output_dir(args.out)
     import mitsuba as mi
 
     integrator = mi.load_dict({"type": "path", "max_depth": args.max_depth})
@@ -257,8 +285,8 @@ def _command_bench(args) -> None:
 
     for method in filter(None, args.methods.split(",")):
         check_method(method)
-    out = _prepare_output_dir(args.out)
     variant = set_variant(args.variant, args.threads)
+    out = _prepare_output_dir(args.out)
     from .bench import benchmark, target_table, write_table
 
     device = _device_name(variant)
@@ -281,8 +309,8 @@ def _command_demo(args) -> None:
     for method in methods:
         check_method(method)
     find_scene(args.scene)
-    out = _prepare_output_dir(args.out)
     variant = set_variant(args.variant, args.threads)
+    out = _prepare_output_dir(args.out)
     import pandas as pd
 
     from .imageio import read_exr
@@ -310,8 +338,8 @@ def _command_demo(args) -> None:
 def _command_validate(args) -> None:
     from .backend import set_variant
 
-    out = _prepare_output_dir(args.out)
     variant = set_variant(args.variant, args.threads)
+    out = _prepare_output_dir(args.out)
     from .bench import write_table
     from .validation import learning_table, unbiasedness_table
 
@@ -326,6 +354,30 @@ def _command_validate(args) -> None:
     write_table(learning, out / "learning", "Equal spp on door-ajar (scale 0.25): MAE vs a `path` reference",
                 device, "python -m guiding validate")
     print(learning.to_string(index=False))
+
+
+def _command_stress(args) -> None:
+    from .backend import set_variant
+
+    variant = set_variant(args.variant, args.threads)
+    from . import stress
+
+    names = [name for name in (args.cases or "").split(",") if name] or None
+    unknown = sorted(set(names or []) - set(stress.CASES))
+    if unknown:
+        raise GuidingError(f"unknown stress case(s) {', '.join(unknown)} (known: {', '.join(stress.CASES)})")
+    out = _prepare_output_dir(args.out)
+
+    def show(outcome) -> None:
+        print(f"{outcome.status:5} {outcome.case.name} ({outcome.seconds:.1f} s) {outcome.message}", flush=True)
+
+    outcomes = stress.run_cases(names, progress=show)
+    path = stress.write_report(outcomes, out / "stress.md", device=_device_name(variant),
+                               command="python -m guiding stress" + (f" --cases {args.cases}" if names else ""))
+    failed = [o.case.name for o in outcomes if o.status != "pass"]
+    print(f"{len(outcomes) - len(failed)} of {len(outcomes)} cases pass -> {path}")
+    if failed:
+        raise GuidingError(f"stress cases failed: {', '.join(failed)} (see {path})")
 
 
 def _command_scenes(args) -> None:
@@ -343,7 +395,18 @@ def _command_methods(args) -> None:
 
 
 COMMANDS = {"render": _command_render, "reference": _command_reference, "evaluate": _command_evaluate,
-            "bench": _command_bench, "validate": _command_validate, "demo": _command_demo, "scenes": _command_scenes, "methods": _command_methods}
+            "bench": _command_bench, "validate": _command_validate, "demo": _command_demo, "stress": _command_stress,
+            "scenes": _command_scenes, "methods": _command_methods}
+
+
+def _interrupted(error: BaseException) -> bool:
+    """Whether ``error`` is, or was caused by, Ctrl-C: a KeyboardInterrupt raised inside Python code that Dr.Jit
+    calls back (while tracing a loop) can reach us wrapped in another exception."""
+    while error is not None:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        error = error.__cause__ or error.__context__
+    return False
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -353,7 +416,9 @@ def main(argv: list[str] | None = None) -> int:
     except GuidingError as error:
         print(f"error: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
+    except BaseException as error:
+        if not _interrupted(error):
+            raise
         print("interrupted: no output was written", file=sys.stderr)
         return EXIT_INTERRUPTED
     return 0

@@ -32,6 +32,32 @@ def atomic_path(path: str | os.PathLike):
             os.remove(tmp)
 
 
+@contextlib.contextmanager
+def atomic_outputs(*paths: str | os.PathLike):
+    """Yields a temporary path beside each of ``paths`` and renames them onto ``paths`` together once the block
+    succeeds. If the block or a rename fails or is interrupted, the files already renamed are removed again: the
+    outputs of a run appear all together or not at all."""
+    paths = [Path(p) for p in paths]
+    temporaries, renamed = [], []
+    try:
+        for path in paths:
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+            os.close(fd)
+            temporaries.append(tmp)
+        yield temporaries
+        for tmp, path in zip(temporaries, paths):
+            os.replace(tmp, path)
+            renamed.append(path)
+    except BaseException:
+        for path in renamed:
+            path.unlink(missing_ok=True)
+        raise
+    finally:
+        for tmp in temporaries:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+
+
 def write_exr(path: str | os.PathLike, image: np.ndarray) -> None:
     """Write an (H, W, 3) linear RGB image as float32 EXR."""
     image = np.ascontiguousarray(image[..., :3], dtype=np.float32)
@@ -42,6 +68,8 @@ def write_exr(path: str | os.PathLike, image: np.ndarray) -> None:
 
 def read_exr(path: str | os.PathLike) -> np.ndarray:
     """Read an RGB EXR as an (H, W, 3) float32 array; a missing, corrupt or non-RGB file is a GuidingError."""
+    if os.path.isdir(path):
+        raise GuidingError(f"cannot read image '{path}': it is a folder")
     if not os.path.isfile(path):
         raise GuidingError(f"cannot read image '{path}': no such file")
     try:

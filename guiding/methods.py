@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
+import os
 import re
+from collections.abc import Callable
 
 from .errors import GuidingError
 from .guides import RULES, SAMPLERS, BSDFGuide, Guide
@@ -56,16 +56,75 @@ def grid_parameters(name: str) -> dict | None:
     return {"spatial_resolution": S, "directional_resolution": D, **GRID_METHODS[match["base"]], "name": name}
 
 
-def check_method(name: str) -> None:
-    """Raise UnknownMethod unless ``name`` names a method (cheap: builds nothing, needs no variant)."""
+#: Memory a guide's tables may take unless told otherwise: ``GUIDING_MEMORY_LIMIT`` (bytes, or a size such as
+#: ``512M`` or ``16G``) or ``--memory-limit`` on the command line set another.
+DEFAULT_MEMORY_LIMIT = 8 * 2 ** 30
+MEMORY_LIMIT_VARIABLE = "GUIDING_MEMORY_LIMIT"
+_SIZE = re.compile(r"^\s*(?P<number>[0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*(?P<unit>[kKmMgGtT]?)(?:i?[bB])?\s*$")
+
+
+def parse_size(text: str) -> int:
+    """Bytes in ``text``: a number of bytes, or one with a binary unit (``512M``, ``16G``, ``1.5GiB``)."""
+    match = _SIZE.match(str(text))
+    if not match:
+        raise GuidingError(f"bad memory size '{text}': expected bytes or a size such as 512M or 16G")
+    return int(float(match["number"]) * 1024 ** " KMGT".index(match["unit"].upper() or " "))
+
+
+def format_size(size: int) -> str:
+    """``size`` bytes in the largest binary unit that keeps it at least 1 (``56.6 GiB``)."""
+    for unit, power in (("TiB", 4), ("GiB", 3), ("MiB", 2), ("KiB", 1)):
+        if size >= 1024 ** power:
+            return f"{size / 1024 ** power:.1f} {unit}"
+    return f"{size} bytes"
+
+
+def memory_limit(limit: int | str | None = None) -> int:
+    """The memory limit in bytes: ``limit`` when given, else ``$GUIDING_MEMORY_LIMIT``, else the default."""
+    if limit is None:
+        limit = os.environ.get(MEMORY_LIMIT_VARIABLE) or DEFAULT_MEMORY_LIMIT
+    return limit if isinstance(limit, int) else parse_size(limit)
+
+
+def table_bytes(name: str) -> int | None:
+    """Bytes the tables of method ``name`` take once built (grid methods; None for the others, whose tables grow
+    while they learn). Needs no variant and allocates nothing."""
+    parameters = grid_parameters(name)
+    if parameters is None:
+        return None
+    from .guides.grid_record import RadianceRecord, default_proposal, table_needs
+
+    sampler = parameters["sampler"]
+    needs = table_needs(parameters["rule"], sampler, parameters.get("proposal") or default_proposal(sampler))
+    return RadianceRecord.planned_bytes(parameters["spatial_resolution"], parameters["directional_resolution"],
+                                        **needs)
+
+
+def check_memory(name: str, limit: int | str | None = None) -> None:
+    """Raise GuidingError if the tables of method ``name`` would exceed the memory limit (:func:`memory_limit`),
+    with the size they would need: before anything is allocated, rather than failing (or swapping) in the middle."""
+    size, allowed = table_bytes(name), memory_limit(limit)
+    if size is not None and size > allowed:
+        parameters = grid_parameters(name)
+        S, D = parameters["spatial_resolution"], parameters["directional_resolution"]
+        raise GuidingError(f"method '{name}' needs {format_size(size)} for its tables (S = {S}, D = {D}: {S ** 3} "
+                           f"cells x {2 * D * D} direction bins), over the memory limit of {format_size(allowed)}; "
+                           f"lower S or D, or raise the limit (--memory-limit or ${MEMORY_LIMIT_VARIABLE})")
+
+
+def check_method(name: str, memory_limit: int | str | None = None) -> None:
+    """Raise UnknownMethod unless ``name`` names a method, and GuidingError if its tables would exceed the memory
+    limit (:func:`check_memory`). Cheap: builds nothing, needs no variant."""
     if name not in _FACTORIES and grid_parameters(name) is None:
         raise UnknownMethod(f"unknown method '{name}' (known: {', '.join(method_names())}; grid methods take "
                             "-S<n>-D<n> suffixes)")
+    check_memory(name, memory_limit)
 
 
-def make_guide(name: str) -> Guide:
-    """A fresh guide for method ``name``."""
-    check_method(name)
+def make_guide(name: str, memory_limit: int | str | None = None) -> Guide:
+    """A fresh guide for method ``name``; refused (GuidingError) if its tables would exceed ``memory_limit``
+    (default: :func:`memory_limit`)."""
+    check_method(name, memory_limit)
     if name in _FACTORIES:
         return _FACTORIES[name]()
     from .guides.grid import GridGuide

@@ -50,4 +50,4 @@ def test_sphere_bin_directions_lie_in_their_bin(resolution, bin_and_sample):
     k, u, v = bin_and_sample
     k %= bins.count
     d = stress.unit(stress.to_numpy(bins.direction(mi.UInt32([k]), mi.Point2f([u], [v]))))
-    assert stress.angle_between(d, geometry.centre[[k]])[0] <= geometry.radius[k] + geometry.spacing[k] + 8 * stress.EPS32
+    assert stress.angle_between(d, geometry.centre[[k]])[0] <= geometry.reach(k)

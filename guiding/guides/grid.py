@@ -34,7 +34,7 @@ import mitsuba as mi
 
 from . import PROPOSALS, RULES, SAMPLERS
 from .base import Guide
-from .grid_record import MIN_EXPLORATION, RadianceRecord
+from .grid_record import MIN_EXPLORATION, RadianceRecord, default_proposal, table_needs
 #: Index of "no (cell, bin) to record into".
 NO_RECORD = 0xFFFFFFFF
 
@@ -123,7 +123,7 @@ class GridGuide(Guide):
         if sampler not in SAMPLERS:
             raise ValueError(f"unknown sampler '{sampler}' (choose from {', '.join(SAMPLERS)})")
         if proposal is None:
-            proposal = "policy" if sampler == "hemi_rej_plus" else "uniform"
+            proposal = default_proposal(sampler)
         if proposal not in PROPOSALS:
             raise ValueError(f"unknown proposal '{proposal}' (choose from {', '.join(PROPOSALS)})")
         self.rule, self.sampler, self.proposal = rule, sampler, proposal
@@ -131,10 +131,7 @@ class GridGuide(Guide):
         self.bsdf_fraction = bsdf_fraction
         self.max_proposals = max_proposals
         self.record_table = RadianceRecord(
-            spatial_resolution, directional_resolution, normal_resolution,
-            needs_cdf=sampler == "sphere_inv" or (sampler.startswith("hemi_rej") and proposal == "policy"),
-            needs_memo=sampler.startswith("hemi"),
-            needs_hemi_cdf=sampler == "hemi_inv", needs_value=rule == "expected_sarsa",
+            spatial_resolution, directional_resolution, normal_resolution, **table_needs(rule, sampler, proposal),
             min_exploration=min_exploration)
         self.trained = False
         self._mc_buffers = None

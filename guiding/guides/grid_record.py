@@ -53,6 +53,20 @@ REACHABLE_FLOOR = 0.01
 MIN_EXPLORATION = 0.1
 
 
+def default_proposal(sampler: str) -> str:
+    """The proposal a rejection sampler uses unless told otherwise: ``policy`` for hemi_rej_plus, else ``uniform``."""
+    return "policy" if sampler == "hemi_rej_plus" else "uniform"
+
+
+def table_needs(rule: str, sampler: str, proposal: str) -> dict[str, bool]:
+    """The tables a grid guide with this rule, sampler and proposal needs (the ``needs_*`` arguments of
+    :class:`RadianceRecord`): the sphere CDF for sphere_inv and for policy proposals, the memo tables for the
+    hemisphere samplers, the per-pair CDFs for hemi_inv, V for Expected SARSA."""
+    return {"needs_cdf": sampler == "sphere_inv" or (sampler.startswith("hemi_rej") and proposal == "policy"),
+            "needs_memo": sampler.startswith("hemi"), "needs_hemi_cdf": sampler == "hemi_inv",
+            "needs_value": rule == "expected_sarsa"}
+
+
 def exploration(spp_done: int, floor: float = MIN_EXPLORATION) -> float:
     """ε = max(0.1^(N/100), floor) for N samples per pixel completed before the pass (method.md §4)."""
     return max(0.1 ** (spp_done / 100.0), floor)
@@ -245,6 +259,18 @@ class RadianceRecord:
             dr.scatter(self.hemi_cdf, _normalised_cdf(weight, B), pair * B + k)
         dr.eval(self.norm, self.bound, self.value, self.hemi_cdf)
         return count
+
+    @staticmethod
+    def planned_bytes(spatial_resolution: int, directional_resolution: int, normal_resolution: int = 5,
+                      needs_cdf: bool = False, needs_memo: bool = False, needs_hemi_cdf: bool = False,
+                      needs_value: bool = False) -> int:
+        """The bytes :meth:`memory_bytes` reports for a record built with these arguments, computed without
+        allocating anything (so that an oversized table can be refused before it is built)."""
+        C, B, NB = spatial_resolution ** 3, 2 * directional_resolution ** 2, 6 * normal_resolution ** 2
+        total = C * B * (8 + 8 + 4 + 4 + (4 if needs_cdf else 0))      # sums, counts, Q, policy, CDF
+        if needs_memo or needs_hemi_cdf or needs_value:
+            total += 4 * (4 * C * NB + (C * NB * B if needs_hemi_cdf else 0) + 2 * NB * B)
+        return total
 
     def memory_bytes(self) -> int:
         arrays = [self.acc_sum, self.acc_count, self.q, self.policy, self.cdf]
