@@ -37,6 +37,8 @@ Q_LIMIT = 1e30
 #: large: a 3 % bias of the rejection samplers (the stress case `scene-with-one-cell-and-one-bin`).
 QUADRATURE = 8
 QUADRATURE_PER_HEMISPHERE = 128
+#: Most quadrature points evaluated by one kernel (bounds the temporary memory of the cosine tables at ~100 MB).
+QUADRATURE_WIDTH = 1 << 22
 
 
 def quadrature_points(directional_resolution: int) -> int:
@@ -178,16 +180,21 @@ class RadianceRecord:
         nb, k = flat // B, flat % B
         normal = self.normal_bins.normal(nb)
         integral = dr.zeros(mi.Float, NB * B)
-        # One row i of quadrature points per kernel (the row passed opaque: one kernel serves all), the m points of
-        # the row side by side in the array and summed per (normal bin, bin).
-        wide = dr.arange(mi.UInt32, NB * B * m)
-        wide_k, column = (wide // m) % B, mi.Float(wide % m)
-        wide_normal = self.normal_bins.normal(wide // (m * B))
+        # Per kernel: one row i of quadrature points and a chunk of `columns` of its points, side by side in the
+        # array (at most QUADRATURE_WIDTH entries, whatever D) and summed per (normal bin, bin). The row and the
+        # chunk's first column are opaque, so one compiled kernel serves every launch.
+        columns = max(1, min(m, QUADRATURE_WIDTH // (NB * B)))
+        wide = dr.arange(mi.UInt32, NB * B * columns)
+        wide_k, offset = (wide // columns) % B, wide % columns
+        wide_normal = self.normal_bins.normal(wide // (columns * B))
         for i in range(m):
-            row = dr.opaque(mi.Float, (i + 0.5) / m)
-            d = self.bins.direction(wide_k, mi.Point2f(row, (column + 0.5) / m))
-            integral += dr.block_reduce(dr.ReduceOp.Add, dr.maximum(dr.dot(wide_normal, d), 0), m)
-            dr.eval(integral)
+            for first in range(0, m, columns):
+                column = dr.opaque(mi.UInt32, first) + offset
+                d = self.bins.direction(wide_k, mi.Point2f(dr.opaque(mi.Float, (i + 0.5) / m),
+                                                           (mi.Float(column) + 0.5) / m))
+                cosine = dr.select(column < m, dr.maximum(dr.dot(wide_normal, d), 0), 0)
+                integral += dr.block_reduce(dr.ReduceOp.Add, cosine, columns)
+                dr.eval(integral)
         integral *= self.bins.solid_angle / (m * m)
 
         bin_centres = self.bins.centres()
