@@ -68,12 +68,19 @@ def scaled_resolution(path: str | os.PathLike, scale: float) -> tuple[int, int]:
 
 def load_scene(name: str, scale: float = 1.0, extra_dirs: Iterable[str | os.PathLike] = ()):
     """Load scene ``name`` at ``scale`` times its declared resolution (a Mitsuba variant must be set)."""
+    import drjit as dr
     import mitsuba as mi
 
     path = find_scene(name, extra_dirs)
     resx, resy = scaled_resolution(path, scale)
+    # Mitsuba's loader runs nested parallel tasks on Dr.Jit's thread pool, and with a single worker it deadlocks
+    # (measured: living-room with --threads 1 never finished loading). Loading is untimed, so it gets two.
+    threads = dr.thread_count()
     try:
+        dr.set_thread_count(max(threads, 2))
         return mi.load_file(str(path), resx=resx, resy=resy)
     except Exception as error:  # Mitsuba reports every load failure as a RuntimeError with a long message
         first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         raise GuidingError(f"cannot load scene '{name}' ({path}): {first_line}") from None
+    finally:
+        dr.set_thread_count(threads)

@@ -60,3 +60,19 @@ def test_libllvm_version_parsing():
 def test_unknown_variant():
     with pytest.raises(GuidingError, match="unknown variant"):
         backend.resolve_variant("scalar_spectral")
+
+
+def test_scene_with_nested_parallel_loading_loads_on_one_thread(tmp_path):
+    """living-room (an environment map and many meshes) deadlocked Mitsuba's loader with --threads 1."""
+    import subprocess
+    import sys
+
+    try:
+        scenes.find_scene("living-room")
+    except GuidingError:
+        pytest.skip("the shared scene living-room is not on the search path")
+    result = subprocess.run([sys.executable, "-m", "guiding", "reference", "--scene", "living-room", "--scale", "0.05",
+                             "--spp", "1", "--threads", "1", "--quiet", "--out", str(tmp_path / "out")],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "out" / "image.exr").exists()
