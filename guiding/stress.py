@@ -118,7 +118,8 @@ def run_case(name: str) -> Outcome:
 
 
 def run_cases(names: list[str] | None = None, progress: Callable[[Outcome], None] | None = None) -> list[Outcome]:
-    """Run the named cases (all by default) in registration order; ``progress`` sees each outcome."""
+    """Run the named cases in the order given (by default all, in registration order); ``progress`` sees each
+    outcome as it comes."""
     outcomes = []
     for name in names or list(CASES):
         outcome = run_case(name)
