@@ -20,16 +20,8 @@ from .errors import GuidingError
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike):
     """Yields a temporary path beside ``path``; renames it onto ``path`` only if the block succeeds."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_outputs(path) as (tmp,):
         yield tmp
-        os.chmod(tmp, 0o644)  # an ordinary file (mkstemp's 0600 would hide results from other users)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
 
 
 @contextlib.contextmanager
@@ -46,6 +38,7 @@ def atomic_outputs(*paths: str | os.PathLike):
             temporaries.append(tmp)
         yield temporaries
         for tmp, path in zip(temporaries, paths):
+            os.chmod(tmp, 0o644)  # an ordinary file (mkstemp's 0600 would hide results from other users)
             os.replace(tmp, path)
             renamed.append(path)
     except BaseException:
