@@ -64,10 +64,10 @@ def test_full_config_expands_into_the_papers_experiments():
     assert {r.budget.tag for r in by_experiment["equal_time"]} == {"10s"}
     assert len({r.budget.tag for r in by_experiment["convergence"]}) > 3
     run = next(r for r in by_experiment["equal_time"] if r.scene == "veach-ajar" and r.method == "ours")
-    assert plan.render_file(run, "image.exr") == "results/paper/renders/equal_time/veach-ajar/ours/10s/seed0/image.exr"
+    assert plan.render_file(run, "image.exr") == "results/full/renders/equal_time/veach-ajar/ours/10s/seed0/image.exr"
     assert "--seconds 10 --exclude-passes 10" in plan.render_args(run)
     ref = plan.reference_for(run)
-    assert plan.reference_file(ref, "image.exr") == "results/paper/references/veach-ajar/x0.25-spp16384/image.exr"
+    assert plan.reference_file(ref, "image.exr") == "results/full/references/veach-ajar/x0.25-spp16384/image.exr"
     assert len({r.key for r in plan.runs}) == len(plan.runs)
 
 
