@@ -70,7 +70,7 @@ def unbiasedness_table(scene_name: str = "door-ajar", scale: float = 0.1, passes
 
 def learning_table(scene_name: str = "door-ajar", scale: float = 0.25, spp: int = 256, reference_spp: int = 4096,
                    methods: tuple[str, ...] = ("brdf", "ours", "ours-uniform-proposals", "ours-no-rejopt",
-                                               "ours-expected")) -> pd.DataFrame:
+                                               "ours-expected", "sdtree", "quadtree-grid")) -> pd.DataFrame:
     """MAE, relMSE, hit rate and time of each method at equal spp against a `path` reference."""
     import pandas as pd
 
