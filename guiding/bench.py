@@ -33,6 +33,8 @@ class PassTiming:
     paths: int = 0
     hits: int = 0
     rays: int = 0
+    guided: int | None = None   # vertices the guide sampled (the rest, e.g. delta or glossy, skip guiding)
+    memo_pairs: int = 0         # (cell, normal bin) pairs with memo tables (only those paths visited)
 
 
 def _timed_pass(scene: mi.Scene, integrator, spp: int, seed: int, spp_done: int) -> PassTiming:
@@ -57,6 +59,8 @@ def _timed_pass(scene: mi.Scene, integrator, spp: int, seed: int, spp_done: int)
         dr.sync_thread()
         timing.update = time.perf_counter() - start
         timing.refine = stats.get("refine_seconds", 0.0)
+        timing.guided = stats.get("guided_samples")
+        timing.memo_pairs = stats.get("memo_pairs", 0)
         integrator.last_update_stats = stats
     return timing
 
@@ -86,7 +90,8 @@ def interleaved_passes(scene: mi.Scene, integrators: dict[str, object], passes: 
 def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int = 12, pass_spp: int = 8,
               max_depth: int = 16) -> pd.DataFrame:
     """Per scene and method: kernel time per spp (also as ratios to ``brdf`` and Mitsuba ``path`` timed in the
-    same run), Python tracing per pass, compile time, guide update share, memory, hit rate and rays per second."""
+    same run), Python tracing per pass, compile time, guide update share, memory, hit rate, rays per second, and
+    what the guide skips: the share of vertices it guides and the memoised (cell, normal bin) pairs."""
     from .integrator import GuidedPathIntegrator
     from .methods import make_guide
     from .scenes import load_scene
@@ -127,6 +132,9 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
                 "hit_rate": sum(r.hits for r in records) / max(sum(r.paths for r in records), 1)
                 if method != "path" else None,
                 "Mrays_per_s": sum(r.rays for r in records) / kernel_seconds / 1e6 if method != "path" else None,
+                "guided_per_ray": sum(r.guided for r in records) / max(sum(r.rays for r in records), 1)
+                if records[-1].guided is not None else None,
+                "memo_pairs": records[-1].memo_pairs,
             })
     return pd.DataFrame(rows)
 
