@@ -61,7 +61,6 @@ def _timed_pass(scene: mi.Scene, integrator, spp: int, seed: int, spp_done: int)
         timing.refine = stats.get("refine_seconds", 0.0)
         timing.guided = stats.get("guided_samples")
         timing.memo_pairs = stats.get("memo_pairs", 0)
-        integrator.last_update_stats = stats
     return timing
 
 
@@ -111,9 +110,7 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
                           for m, records in timed.items()}
         for method, records in timed.items():
             guide = getattr(integrators[method], "guide", None)
-            stats = guide.stats() if guide is not None else {}
-            memory = stats.get("table_bytes") or getattr(integrators[method], "last_update_stats", {}).get(
-                "memory_bytes", 0)
+            memory = guide.stats().get("memory_bytes", 0) if guide is not None else 0
             total = sum(r.wall + r.update for r in records)
             kernel_seconds = sum(r.kernel for r in records)
             rows.append({

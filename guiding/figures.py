@@ -158,8 +158,8 @@ def convergence(job: dict, metrics_files: list[str], out: str | Path) -> None:
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
     rows = [json.loads(Path(p).read_text()) for p in metrics_files]
-    drawn = convergence_series(rows)
-    scenes = [s for s in job.get("scenes", sorted(drawn)) if s in drawn]
+    present = {row["scene"] for row in rows}
+    scenes = [s for s in job.get("scenes", sorted(present)) if s in present]
     figure = _figure(4.2 * len(scenes), 3.0 * len(CONVERGENCE_ROWS))
     grid = figure.subplots(len(CONVERGENCE_ROWS), len(scenes), squeeze=False)
     for (metric, ylabel, value), axes in zip(CONVERGENCE_ROWS, grid):

@@ -7,7 +7,7 @@ import re
 from collections.abc import Callable
 
 from .errors import GuidingError
-from .guides import RULES, SAMPLERS, BSDFGuide, Guide
+from .guides import RULES, SAMPLERS, BSDFGuide, Guide, default_proposal
 
 
 class UnknownMethod(GuidingError):
@@ -53,7 +53,9 @@ def grid_parameters(name: str) -> dict | None:
     S, D = int(match["S"] or 8), int(match["D"] or 16)
     if not (1 <= S <= 256 and 1 <= D <= 256):
         raise UnknownMethod(f"method '{name}': S and D must be in 1..256")
-    return {"spatial_resolution": S, "directional_resolution": D, **GRID_METHODS[match["base"]], "name": name}
+    method = GRID_METHODS[match["base"]]
+    return {"spatial_resolution": S, "directional_resolution": D,
+            "proposal": default_proposal(method["sampler"]), **method, "name": name}
 
 
 #: Memory a guide's tables may take unless told otherwise: ``GUIDING_MEMORY_LIMIT`` (bytes, or a size such as
@@ -92,10 +94,9 @@ def table_bytes(name: str) -> int | None:
     parameters = grid_parameters(name)
     if parameters is None:
         return None
-    from .guides.grid_record import RadianceRecord, default_proposal, table_needs
+    from .guides.grid_record import RadianceRecord, table_needs
 
-    sampler = parameters["sampler"]
-    needs = table_needs(parameters["rule"], sampler, parameters.get("proposal") or default_proposal(sampler))
+    needs = table_needs(parameters["rule"], parameters["sampler"], parameters["proposal"])
     return RadianceRecord.planned_bytes(parameters["spatial_resolution"], parameters["directional_resolution"],
                                         **needs)
 

@@ -361,11 +361,12 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
     spp_total, counted = 0, 0.0
     snapshot_spp = None
 
-    def close_iteration() -> IterationStats:
-        record = _iteration_record(len(iterations), passes[len(passes) - images.passes:])
+    def current_iteration() -> IterationStats:
+        return _iteration_record(len(iterations), passes[len(passes) - images.passes:])
+
+    def close_iteration(record: IterationStats) -> None:
         images.close(record)
         iterations.append(record)
-        return record
 
     def take_snapshot() -> None:
         nonlocal snapshot_spp
@@ -416,13 +417,13 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
 
                 # ------------------- Schedule and bookkeeping (not timed) --------------------
                 if guide_stats.get("iteration_done"):
-                    ended = _iteration_record(len(iterations), passes[-images.passes:])
+                    ended = current_iteration()
                     fits = True
                     if budget.seconds is not None and guide.learns and hasattr(guide, "stop_training"):
                         next_spp, remaining = guide.iteration_spp(), budget.seconds - counted
                         fits, estimate = next_iteration_fits(ended, next_spp, remaining)
                     if fits:
-                        close_iteration()
+                        close_iteration(ended)
                     else:
                         # The iteration that just ended becomes the final one: the frozen guide (refined with
                         # its data) renders the rest of the budget into its image, so no sample is discarded.
@@ -441,7 +442,7 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
                     take_snapshot()
                 dr.kernel_history()  # whatever the bookkeeping launched is no part of the next pass
         if images.passes:
-            close_iteration()   # the final iteration: the rest of the budget after the last boundary
+            close_iteration(current_iteration())   # the final iteration: the rest of the budget after the last boundary
         if snapshot is not None and passes and snapshot_spp != spp_total:
             take_snapshot()
     finally:

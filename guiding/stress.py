@@ -32,6 +32,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .cli import EXIT_BAD_INPUT, EXIT_INTERRUPTED
+from .metrics import nonfinite_pixels
+
 #: float32 machine epsilon: the relative resolution every float32 table and direction has.
 EPS32 = float(np.finfo(np.float32).eps)
 #: Smallest normal float32. Dr.Jit's CPU backend flushes denormals to zero (FTZ/DAZ) in kernels that run on its
@@ -370,7 +373,7 @@ class CylindricalCells:
     one of them. ``cells`` (an ``(n, 2)`` array of (column, row)) selects which; all by default."""
 
     def __init__(self, depth: int, cells: np.ndarray | None = None):
-        self.depth, self.n = depth, 1 << depth
+        self.n = 1 << depth
         if cells is None:
             column, row = np.meshgrid(np.arange(self.n), np.arange(self.n))
             cells = np.stack([column.ravel(), row.ravel()], 1)
@@ -538,7 +541,7 @@ def cylindrical_map_round_trip() -> dict:
     for scale in SCALES:
         problems += cylindrical_violations((centres * scale).astype(np.float32))
     # The square's own corners and edges, as float32 points (1 − 2⁻²⁴ is the largest coordinate below 1).
-    edge = np.array([0, 2.0 ** -24, 0.5, 1 - 2.0 ** -24], dtype=np.float32)
+    edge = np.array([0, 2.0 ** -24, 0.5, ONE_MINUS_EPS32], dtype=np.float32)
     corners = np.stack(np.meshgrid(edge, edge), -1).reshape(-1, 2)
     from .guides.sdtree import uv_to_dir
 
@@ -1219,7 +1222,7 @@ def sdtree_learning_targets() -> dict:
         paths.run(guide)
         guide._splat_logs()
         counts = np.array(guide._count_acc)
-        recorded_vertices = int(np.sum(paths.length - 1))     # every vertex that continues has pdf > 0
+        recorded_vertices = paths.records()     # every vertex that continues has pdf > 0
         check(counts.sum() == recorded_vertices,
               f"{method}: {counts.sum()} vertices recorded, expected {recorded_vertices}")
         stats = guide.update(getattr(guide, "iteration_end_spp", 8))
@@ -1346,8 +1349,8 @@ def scene_run_violations(run: SceneRun) -> list[str]:
     statistic, an invalid share or acceptance rate outside [0, 1], proposals per sample above the cap, accumulator
     entries dropped or clamped (a physical scene has no bad input), or invalid guide tables."""
     problems = []
-    if not np.isfinite(run.image).all():
-        problems.append(f"{np.count_nonzero(~np.isfinite(run.image).all(axis=-1))} non-finite pixels")
+    if nonfinite_pixels(run.image):
+        problems.append(f"{nonfinite_pixels(run.image)} non-finite pixels")
     if not np.isfinite(run.means).all():
         problems.append("a non-finite pass mean")
     for p in run.passes:
@@ -1468,7 +1471,8 @@ def scene_with_max_depth_1() -> dict:
     check(reference.max() > 0, "the emitter is not in view")
     for method, run in runs.items():
         # Pass by pass (the SD-tree's final image holds its last iteration only).
-        check(np.array_equal(run.pass_images, reference), f"{method}: pass images differ from brdf's")
+        if method != "brdf":
+            check(np.array_equal(run.pass_images, reference), f"{method}: pass images differ from brdf's")
         check(((run.image >= 0) & (run.image <= radiance * (1 + 4 * EPS32))).all(),
               f"{method}: pixel values outside [0, {radiance}]")
         if hasattr(run.guide, "record_table"):
@@ -1485,6 +1489,8 @@ def scene_with_one_cell_and_one_bin() -> dict:
     runs = {method: render_scene(open_plane(), method, seed=i) for i, method in enumerate(methods)}
     figures = _check_runs("S = D = 1", runs)
     for method, run in runs.items():
+        if method == "brdf":
+            continue
         excess = mean_difference_excess(run.means, runs["brdf"].means)
         check(excess <= 1, f"{method}: mean {figures[method]:.6g} vs brdf {figures['brdf']:.6g} "
                            f"({excess:.2f} x allowed)")
@@ -1513,7 +1519,7 @@ def run_cli(argv: list[str]) -> CliRun:
     return CliRun(code, err.getvalue().strip().splitlines(), out.getvalue())
 
 
-def one_error_line(run: CliRun, fragment: str, code: int = 2) -> list[str]:
+def one_error_line(run: CliRun, fragment: str, code: int = EXIT_BAD_INPUT) -> list[str]:
     """Problems with a run that should have failed with exit ``code`` and one stderr line containing
     ``fragment``."""
     problems = []
@@ -1758,7 +1764,7 @@ def ctrl_c_mid_render() -> dict:
                 process.kill()
                 process.communicate()
         lines = stderr.strip().splitlines()
-        check(process.returncode == 130, f"exit code {process.returncode}: {stderr[-500:]}")
+        check(process.returncode == EXIT_INTERRUPTED, f"exit code {process.returncode}: {stderr[-500:]}")
         check(len(lines) == 1 and lines[0].startswith("interrupted"), f"stderr: {lines[-3:]}")
         left = files_in(out)
         check(not left, f"files left: {left}")
@@ -1777,7 +1783,7 @@ def ctrl_c_mid_render() -> dict:
                 del BSDFGuide.sample
             else:
                 BSDFGuide.sample = own
-        problems = one_error_line(run, "interrupted", code=130)
+        problems = one_error_line(run, "interrupted", code=EXIT_INTERRUPTED)
         check(not problems, f"Ctrl-C while tracing: {_first(problems)}")
         check(not files_in(out), f"Ctrl-C while tracing: files left: {files_in(out)}")
     return {"interrupted_after_seconds": round(interrupted_after, 2)}

@@ -11,7 +11,13 @@ SAMPLERS = ("sphere_inv", "hemi_inv", "hemi_rej", "hemi_rej_plus")
 #: How the rejection samplers propose directions (the paper's ``uniform``, or our faster ``policy``).
 PROPOSALS = ("policy", "uniform")
 
+
+def default_proposal(sampler: str) -> str:
+    """The proposal a rejection sampler uses unless told otherwise: ``policy`` for hemi_rej_plus, else ``uniform``."""
+    return "policy" if sampler == "hemi_rej_plus" else "uniform"
+
+
 from .base import Guide, NoPathState  # noqa: E402
 from .bsdf import BSDFGuide
 
-__all__ = ["Guide", "NoPathState", "BSDFGuide", "RULES", "SAMPLERS", "PROPOSALS"]
+__all__ = ["Guide", "NoPathState", "BSDFGuide", "RULES", "SAMPLERS", "PROPOSALS", "default_proposal"]

@@ -32,9 +32,9 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from . import PROPOSALS, RULES, SAMPLERS
+from . import PROPOSALS, RULES, SAMPLERS, default_proposal
 from .base import Guide
-from .grid_record import MIN_EXPLORATION, RadianceRecord, default_proposal, table_needs
+from .grid_record import MIN_EXPLORATION, RadianceRecord, table_needs
 #: Index of "no (cell, bin) to record into".
 NO_RECORD = 0xFFFFFFFF
 
@@ -73,6 +73,13 @@ class _Vertex:
 def _invert_cdf(cdf: mi.Float, row: mi.UInt32, size: int, u: mi.Float, active: mi.Bool) -> mi.UInt32:
     """The first k in [0, size) with ``cdf[row + k] > u`` (binary search over one row of inclusive CDFs)."""
     return dr.binary_search(0, size - 1, lambda i: dr.gather(mi.Float, cdf, row + i, active) <= u)
+
+
+def _direction_from_cdf(bins, cdf: mi.Float, row: mi.UInt32, sampler: mi.Sampler, si: mi.SurfaceInteraction3f,
+                        active: mi.Bool) -> tuple[mi.Vector3f, mi.UInt32]:
+    """A bin drawn from one row of per-bin CDFs, then a uniform direction inside it: (local direction, bin)."""
+    k = _invert_cdf(cdf, row, bins.count, sampler.next_1d(active), active)
+    return si.to_local(bins.direction(k, sampler.next_2d(active))), k
 
 
 def _uniform_on_side(sampler: mi.Sampler, side: mi.Float, active: mi.Bool) -> mi.Vector3f:
@@ -154,7 +161,7 @@ class GridGuide(Guide):
         return {"rule": self.rule, "sampler": self.sampler, "proposal": self.proposal,
                 "S": table.S, "D": table.bins.resolution,
                 "bins": table.bins.count, "normal_bins": table.normal_bins.count,
-                "table_bytes": table.memory_bytes()}
+                "memory_bytes": table.memory_bytes()}
 
     def _reset_counters(self) -> None:
         self.counters = {key: mi.UInt32(0) for key in ("guided", "invalid", "proposals", "rejection_samples",
@@ -245,48 +252,43 @@ class GridGuide(Guide):
             above = dr.gather(mi.Float, table.hemi_cdf, row + k, guided)
             below = dr.gather(mi.Float, table.hemi_cdf, row + k - 1, guided & (k > 0))
             return value, (above - below) / table.bins.solid_angle
-        on_side = wo.z * vertex.side > 0
         if self.proposal == "policy":
             acceptance = vertex.norm * table.bins.count / (4 * dr.pi)
         else:
             acceptance = vertex.norm / (2 * dr.pi * vertex.bound)
         miss_all = dr.power(1 - dr.minimum(acceptance, 1), self.max_proposals)
         from_target = (1 - vertex.mix) * (1 - miss_all)
-        policy_cos = table.policy_at(vertex.cell, si.to_world(wo), guided) * dr.abs(wo.z)
-        pdf = from_target * policy_cos / vertex.norm + (1 - from_target) / (2 * dr.pi)
-        return value, dr.select(on_side, pdf, 0)
+        pdf = from_target * self._policy_cos(si, vertex, wo) / vertex.norm + (1 - from_target) / (2 * dr.pi)
+        return value, dr.select(wo.z * vertex.side > 0, pdf, 0)
 
-    def _target(self, si, vertex, wo) -> mi.Float:
-        """The rejection samplers' unnormalised density ``g = (1 − ε_r)·P(ω)·|cos| + ε_r·ū``."""
-        policy = self.record_table.policy_at(vertex.cell, si.to_world(wo), vertex.guided)
-        return (1 - vertex.mix) * policy * dr.abs(wo.z) + vertex.mix * vertex.mean
+    def _policy_cos(self, si, vertex, wo) -> mi.Float:
+        """``P(ω)·|cos|``, the hemisphere samplers' target before mixing."""
+        return self.record_table.policy_at(vertex.cell, si.to_world(wo), vertex.guided) * dr.abs(wo.z)
 
     def _sample_sphere(self, sampler, si, vertex, bsdf_wo) -> mi.Vector3f:
         """One-sample mixture: the BSDF's direction with probability ``bsdf_fraction``, else the policy's."""
         table = self.record_table
-        B = table.bins.count
         use_guide = vertex.guided & (sampler.next_1d(vertex.guided) >= self.bsdf_fraction)
-        k = _invert_cdf(table.cdf, vertex.cell * B, B, sampler.next_1d(use_guide), use_guide)
-        wo_guide = si.to_local(table.bins.direction(k, sampler.next_2d(use_guide)))
+        wo_guide, _ = _direction_from_cdf(table.bins, table.cdf, vertex.cell * table.bins.count, sampler, si,
+                                          use_guide)
         return dr.select(use_guide, wo_guide, bsdf_wo)
 
     def _sample_hemi_inv(self, sampler, si, vertex) -> tuple[mi.Vector3f, mi.UInt32]:
         """A direction drawn from the pair's CDF, and the bin it was drawn in."""
         table = self.record_table
-        B = table.bins.count
-        k = _invert_cdf(table.hemi_cdf, vertex.pair * B, B, sampler.next_1d(vertex.guided), vertex.guided)
-        return si.to_local(table.bins.direction(k, sampler.next_2d(vertex.guided))), k
+        return _direction_from_cdf(table.bins, table.hemi_cdf, vertex.pair * table.bins.count, sampler, si,
+                                   vertex.guided)
 
     def _sample_rejection(self, sampler, si, vertex) -> mi.Vector3f:
         table = self.record_table
         if self.proposal == "policy":
             # The uniform share ε_r of g needs no loop; the loop draws P·|cos| from the sphere policy.
             searching = vertex.guided & (sampler.next_1d(vertex.guided) >= vertex.mix)
-            B = table.bins.count
 
             def propose(sampler, active):
-                k = _invert_cdf(table.cdf, vertex.cell * B, B, sampler.next_1d(active), active)
-                return si.to_local(table.bins.direction(k, sampler.next_2d(active)))
+                wo, _ = _direction_from_cdf(table.bins, table.cdf, vertex.cell * table.bins.count, sampler, si,
+                                            active)
+                return wo
 
             def accepts(sampler, candidate, active):
                 return sampler.next_1d(active) < candidate.z * vertex.side
@@ -296,8 +298,9 @@ class GridGuide(Guide):
             def propose(sampler, active):
                 return _uniform_on_side(sampler, vertex.side, active)
 
-            def accepts(sampler, candidate, active):
-                return sampler.next_1d(active) * vertex.bound < self._target(si, vertex, candidate)
+            def accepts(sampler, candidate, active):   # ξ·M′ < g = (1 − ε_r)·P·|cos| + ε_r·ū
+                target = (1 - vertex.mix) * self._policy_cos(si, vertex, candidate) + vertex.mix * vertex.mean
+                return sampler.next_1d(active) * vertex.bound < target
 
         self._count("rejection_samples", 1, searching)
         wo, accepted, proposals = self._rejection_loop(sampler, mi.Bool(searching), propose, accepts)

@@ -55,11 +55,6 @@ REACHABLE_FLOOR = 0.01
 MIN_EXPLORATION = 0.1
 
 
-def default_proposal(sampler: str) -> str:
-    """The proposal a rejection sampler uses unless told otherwise: ``policy`` for hemi_rej_plus, else ``uniform``."""
-    return "policy" if sampler == "hemi_rej_plus" else "uniform"
-
-
 def table_needs(rule: str, sampler: str, proposal: str) -> dict[str, bool]:
     """The tables a grid guide with this rule, sampler and proposal needs (the ``needs_*`` arguments of
     :class:`RadianceRecord`): the sphere CDF for sphere_inv and for policy proposals, the memo tables for the

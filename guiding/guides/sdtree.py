@@ -86,14 +86,6 @@ def uv_to_dir(uv):
     return mi.Vector3f(cos_phi * sin_theta, sin_phi * sin_theta, cos_theta)
 
 
-def dir_to_uv_np(d: np.ndarray) -> np.ndarray:
-    """NumPy version of :func:`dir_to_uv` for ``(n, 3)`` directions (float64)."""
-    u = np.clip((d[:, 2] + 1) * 0.5, 0, np.nextafter(1.0, 0))
-    v = np.arctan2(d[:, 1], d[:, 0]) / (2 * np.pi)
-    v = np.clip(np.where(v < 0, v + 1, v), 0, np.nextafter(1.0, 0))
-    return np.stack([u, v], axis=1)
-
-
 # ===================================================================================================================
 #  D-trees on the host: a forest in one breadth-first node table
 # ===================================================================================================================
@@ -150,9 +142,6 @@ class Forest:
     @property
     def n_nodes(self) -> int:
         return len(self.child)
-
-    def leaf_mask(self) -> np.ndarray:
-        return self.child < 0
 
     def totals(self) -> np.ndarray:
         """Energy of each tree."""
@@ -912,7 +901,6 @@ class QuadtreeGridGuide(_TreeGuide):
         self._sampling = self._recording = DeviceForest(self._forest)
         self._reset_accumulators()
         self._logs.clear()
-        self._passes = 0
 
     def _locate(self, p, active):
         S = self.S
@@ -932,7 +920,6 @@ class QuadtreeGridGuide(_TreeGuide):
         self._sampling = self._recording = DeviceForest(self._forest)
         self._reset_accumulators()
         dr.sync_thread()
-        self._passes += 1
         stats = {"splat_seconds": splat_seconds, "refine_seconds": time.perf_counter() - start,
                  "refine_host_seconds": host_seconds, "energy_recorded": float(energy.sum()), **self.sanitised}
         stats.update(self._structure_stats())
