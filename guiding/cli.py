@@ -24,6 +24,8 @@ EXIT_INTERRUPTED = 130
 
 #: What ``bench`` times by default: the shared scenes (method.md) and every kind of method.
 BENCH_SCENES = ("cornell-box", "veach-ajar", "staircase2", "living-room")
+#: The paper's hemi_inv without the BSDF share, shown beside ours in the single-bounce weight table.
+PURE_HEMI_INV = ("mc-hemi_inv-pure", "sarsa-hemi_inv-pure", "expected_sarsa-hemi_inv-pure")
 BENCH_METHODS = ("ours", "ours-uniform-proposals", "ours-no-rejopt", "ours-expected", "sarsa-sphere_inv",
                  "sarsa-hemi_inv", "sdtree", "quadtree-grid")
 
@@ -341,15 +343,28 @@ def _command_validate(args) -> None:
     variant = set_variant(args.variant, args.threads)
     out = _prepare_output_dir(args.out)
     from .bench import write_table
-    from .validation import learning_table, unbiasedness_table
+    import pandas as pd
+
+    from .validation import (UNBIASEDNESS_METHODS, UNBIASEDNESS_SCENES, bounce_weight_table, learning_table,
+                             unbiasedness_table)
 
     device = _device_name(variant)
-    passes, spp = (6, 8) if args.quick else (24, 32)
-    unbiased = unbiasedness_table(passes=passes, spp=spp)
+    budgets = {name: (scale, 6, 8) if args.quick else (scale, passes, spp)
+               for name, (scale, passes, spp) in UNBIASEDNESS_SCENES.items()}
+    unbiased = pd.concat([unbiasedness_table(name, budget=budget) for name, budget in budgets.items()])
+    described = "; ".join(f"{name} at scale {scale}, {passes} passes x {spp} spp"
+                          for name, (scale, passes, spp) in budgets.items())
     write_table(unbiased, out / "grid_unbiasedness", f"Image mean of every rule x sampler vs Mitsuba `path` "
-                f"(door-ajar, scale 0.1, {passes} passes x {spp} spp; agrees = all channels within 4 standard "
-                "errors)", device, "python -m guiding validate")
+                f"({described}; `path` has twice the passes; agrees = all channels within 4 standard errors)",
+                device, "python -m guiding validate")
     print(unbiased.to_string(index=False))
+    methods = ["brdf", "sdtree", "quadtree-grid", *UNBIASEDNESS_METHODS, *PURE_HEMI_INV]
+    weights = pd.concat([bounce_weight_table(name, methods, vertices=200 if args.quick else 1000,
+                                             samples=512 if args.quick else 4096) for name in budgets])
+    write_table(weights, out / "bounce_weights", "Single-bounce weights f·cos/p at real diffuse vertices after 64 spp "
+                "of training (scale 0.1; 1000 vertices x 4096 directions; ratios to the vertex albedo)",
+                device, "python -m guiding validate")
+    print(weights.to_string(index=False))
     learning = learning_table(spp=64 if args.quick else 256, reference_spp=256 if args.quick else 4096)
     write_table(learning, out / "learning", "Equal spp on door-ajar (scale 0.25): MAE vs a `path` reference",
                 device, "python -m guiding validate")

@@ -16,25 +16,27 @@ class UnknownMethod(GuidingError):
 
 #: The paper's configurations (S = 8, D = 16). Every ``{rule}-{sampler}`` pair is a method too, and any grid
 #: method takes resolution overrides as a suffix: ``ours-S4-D32``, ``mc-hemi_inv-S16``. ``ours-uniform-proposals`` is
-#: ``ours`` with the paper's rejection loop (same density, about five times the proposals; see GridGuide).
+#: ``ours`` with the paper's rejection loop (the same target, about five times the proposals; see GridGuide).
+#: ``{rule}-hemi_inv-pure`` is the paper's hemi_inv without the BSDF share of ours (heavy-tailed; not in the tables).
 GRID_METHODS = {
     "ours": {"rule": "sarsa", "sampler": "hemi_rej_plus"},
     "ours-uniform-proposals": {"rule": "sarsa", "sampler": "hemi_rej_plus", "proposal": "uniform"},
     "ours-no-rejopt": {"rule": "sarsa", "sampler": "hemi_rej"},
     "ours-expected": {"rule": "expected_sarsa", "sampler": "hemi_rej_plus"},
     **{f"{rule}-{sampler}": {"rule": rule, "sampler": sampler} for rule in RULES for sampler in SAMPLERS},
+    **{f"{rule}-hemi_inv-pure": {"rule": rule, "sampler": "hemi_inv", "bsdf_fraction": 0.0} for rule in RULES},
 }
 _OVERRIDES = re.compile(r"^(?P<base>.+?)(?:-S(?P<S>\d+))?(?:-D(?P<D>\d+))?$")
 
-def _sdtree(cls_name: str) -> Callable[[], Guide]:
-    def build() -> Guide:
+def _sdtree(cls_name: str) -> Callable[..., Guide]:
+    def build(**parameters) -> Guide:
         from .guides import sdtree
 
-        return getattr(sdtree, cls_name)()
+        return getattr(sdtree, cls_name)(**parameters)
     return build
 
 
-_FACTORIES: dict[str, Callable[[], Guide]] = {
+_FACTORIES: dict[str, Callable[..., Guide]] = {
     "brdf": BSDFGuide,
     "sdtree": _sdtree("SDTreeGuide"),
     "quadtree-grid": _sdtree("QuadtreeGridGuide"),
@@ -122,12 +124,13 @@ def check_method(name: str, memory_limit: int | str | None = None) -> None:
     check_memory(name, memory_limit)
 
 
-def make_guide(name: str, memory_limit: int | str | None = None) -> Guide:
-    """A fresh guide for method ``name``; refused (GuidingError) if its tables would exceed ``memory_limit``
-    (default: :func:`memory_limit`)."""
+def make_guide(name: str, memory_limit: int | str | None = None, **overrides) -> Guide:
+    """A fresh guide for method ``name``, with its constructor's parameters ``overrides`` changed (for example
+    ``make_guide("sarsa-hemi_inv", bsdf_fraction=0)``); refused (GuidingError) if its tables would exceed
+    ``memory_limit`` (default: :func:`memory_limit`)."""
     check_method(name, memory_limit)
     if name in _FACTORIES:
-        return _FACTORIES[name]()
+        return _FACTORIES[name](**overrides)
     from .guides.grid import GridGuide
 
-    return GridGuide(**grid_parameters(name))
+    return GridGuide(**{**grid_parameters(name), **overrides})

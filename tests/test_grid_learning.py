@@ -122,3 +122,19 @@ def test_running_mean_and_exploration():
     expected = 0.9 * shifted / shifted.sum() + 0.1 / 2
     assert record.policy.numpy() == pytest.approx(expected, rel=1e-6)
     assert record.cdf.numpy() == pytest.approx(np.cumsum(expected), rel=1e-6)
+
+
+@pytest.mark.parametrize("method", ["sarsa-sphere_inv", "sarsa-hemi_inv", "ours", "ours-no-rejopt", "ours-expected"])
+def test_guiding_starts_at_the_second_pass(cornell, method):
+    """Pass 0 samples the BSDF only; pass 1 already guides (the hemisphere samplers' memo covers pass 0's pairs)."""
+    from guiding.integrator import GuidedPathIntegrator
+    from guiding.methods import make_guide
+
+    guide = make_guide(method)
+    integrator = GuidedPathIntegrator(guide=guide)
+    guide.prepare(cornell)
+    guided = []
+    for index in range(2):
+        mi.render(cornell, integrator=integrator, spp=4, seed=index)
+        guided.append(guide.update(4 * (index + 1))["guided_samples"])
+    assert guided[0] == 0 and guided[1] > 0, guided

@@ -50,18 +50,17 @@ CONFIGURATIONS = [(sampler, proposal) for sampler in SAMPLERS
 #: Number of chi-square tests in this file: the significance level is Šidák-corrected for them, as Mitsuba does.
 TEST_COUNT = len(CONFIGURATIONS) * 2 * 2 * 2
 
-#: A normal at a normal-bin centre but off the axes (the memoised N is exact there), and an axis normal.
-NORMALS = {"oblique": None, "axis": (0.0, 0.0, 1.0)}
+#: An axis normal (a normal-bin centre), and a tilted one 12.5° from its normal bin's centre (near a corner of the
+#: bin), where the memo tables are used away from the normal they were computed for.
+NORMALS = {"tilted": (0.4929, 0.1870, 0.8498), "axis": (0.0, 0.0, 1.0)}
 
 
 @pytest.mark.parametrize("sampler, proposal", CONFIGURATIONS)
 @pytest.mark.parametrize("D", [4, 16])
 @pytest.mark.parametrize("table", ["peaked", "flat"])
-@pytest.mark.parametrize("normal_name", ["oblique", "axis"])
+@pytest.mark.parametrize("normal_name", list(NORMALS))
 def test_sampler_pdf_matches_samples(sampler, proposal, D, table, normal_name):
-    from guiding.directions import NormalBins
-
-    normal = NORMALS[normal_name] or tuple(float(c[0]) for c in NormalBins(5).normal(mi.UInt32(7)))
+    normal = NORMALS[normal_name]
     guide = _trained_guide(sampler, proposal, D, table, normal)
     bsdf = mi.load_dict({"type": "diffuse", "reflectance": 0.5})
     ctx = mi.BSDFContext()
@@ -79,6 +78,8 @@ def test_sampler_pdf_matches_samples(sampler, proposal, D, table, normal_name):
         si = _vertex_setup(guide, normal, size)
         return guide.pdf(si, mi.BSDFPtr(bsdf), ctx, si.to_local(wo), dr.full(mi.Bool, True, size))
 
+    # 64 integration points per cell side: the densities step along great circles that no cell boundary follows
+    # (bin edges, the uniform share's horizon), and 32 integrated them 0.15 % low (a false rejection at p = 3e-5).
     test = ChiSquareTest(domain=SphericalDomain(), sample_func=sample_func, pdf_func=pdf_func, sample_dim=2,
-                         sample_count=400_000, res=64, ires=32)
+                         sample_count=400_000, res=64, ires=64)
     assert test.run(test_count=TEST_COUNT), test.messages

@@ -7,22 +7,30 @@ Rules (method.md §3), the target recorded for the segment x → x′ that left 
 A segment whose guided direction went below the surface is never traced, so it records nothing.
 
 Samplers (method.md §5), used only at surfaces whose BSDF is purely diffuse; others are BSDF-sampled:
-  ``sphere_inv``     bin from the cell's CDF over the sphere, uniform in the bin; one-sample mixture with BSDF
-                     sampling (BSDF fraction 0.5);
+  ``sphere_inv``     bin from the cell's CDF over the sphere, uniform in the bin;
   ``hemi_inv``       bin from the memoised CDF of P·∫cos per (cell, normal bin), uniform in the bin;
-  ``hemi_rej``       uniform proposals on the hemisphere accepted with probability P·cos/M;
-  ``hemi_rej_plus``  the same with a uniform mixed in: ``g = (1 − ε_r)·P·cos + ε_r·ū``, ε_r = max((1−2c)/(2−2c), 0).
-The rejection samplers draw their target density with one of two proposals:
-  ``uniform``  the paper's loop: uniform directions on the hemisphere, accepted if ``ξ·M′ < g``; the acceptance
-               rate is ``a = N/(2π·M′)``, a few percent once P is peaked.
-  ``policy``   the same density, drawn faster: the share ε_r of g directly from the uniform, the rest from P·|cos|
-               by proposing from the cell's sphere policy (CDF over the 2D² bins, uniform in the bin) and
-               accepting with probability ``cos`` on the arrival side; ``a = N·2D²/(4π)``, the policy's mean
-               cosine, independent of how peaked P is.
-The loop stops after ``max_proposals``; the rest fall back to a fresh uniform direction, and the pdf accounts for
-it exactly. With ``r = (1 − a)^max_proposals`` both proposals give ``p = w·P·|cos|/N + (1 − w)/(2π)`` with
-``w = (1 − ε_r)·(1 − r)``.
-Pass 0 samples the BSDF only (the tables are empty).
+  ``hemi_rej``       the target ``P(ω)·cos⁺(ω, n_c)/N`` by rejection;
+  ``hemi_rej_plus``  the same with the share ε_r = max((1−2c)/(2−2c), 0), c = ū/M, drawn apart (the paper's Rej+).
+Every sampler is a one-sample mixture with BSDF sampling, ``p = α·p_bsdf + (1 − α)·p_guide``, and reports that
+density exactly. The BSDF share α bounds the weight ``f·cos/p`` of a diffuse vertex by ρ/α and gives every direction
+with f·cos > 0 a positive density. For the inversion samplers α = ``bsdf_fraction`` (0.5; 0 is the paper's pure
+sampler, whose weight reached 97·ρ at door-ajar vertices: a few paths carried most of the image). For the rejection
+samplers α = 1 − (1 − u)·(1 − r): u = max(ε_r, ``min_bsdf_share``), where the paper mixes ε_r of a uniform density
+into the target instead (ours draws it from the BSDF: a weight bound of 2ρ rather than 4ρ at ε_r = ½), and r, the
+share of loops that exhaust ``max_proposals`` and fall back to the BSDF's direction.
+
+The rejection target uses the normal bin's centre ``n_c`` (accept with ``cos(ω, n_c)``): the memoised
+``N = ∫ P·cos⁺(ω, n_c)`` is exact for it at every true normal, so the samplers are exact by construction (with N
+taken at n_c but the cosine at the true normal, each bounce was off by N(n_c)/N(n): +2 % image mean on a tilted
+Cornell box). Target directions below the true surface have f = 0 and weight 0. The loop proposes with one of:
+  ``uniform``  uniform directions on the hemisphere of n_c, accepted if ``ξ·M < P·cos(ω, n_c)``; acceptance
+               ``a = N/(2π·M)``, a few percent once P is peaked (the paper's loop);
+  ``policy``   directions from the cell's sphere policy (CDF over the 2D² bins, uniform in the bin) accepted with
+               probability ``cos(ω, n_c)``; ``a = N·2D²/(4π)``, the policy's mean cosine, independent of how peaked
+               P is.
+With ``r = (1 − a)^max_proposals``.
+Pass 0 samples the BSDF only (the tables are empty); it marks the (cell, normal bin) pairs it visits, so the
+hemisphere samplers guide from pass 1.
 """
 
 from __future__ import annotations
@@ -35,6 +43,10 @@ import mitsuba as mi
 from . import PROPOSALS, RULES, SAMPLERS, default_proposal
 from .base import Guide
 from .grid_record import MIN_EXPLORATION, RadianceRecord, table_needs
+
+#: Least BSDF share of the rejection samplers (see the module docstring; chosen by measurement, notes in
+#: results/grid_unbiasedness.md).
+MIN_BSDF_SHARE = 0.1
 #: Index of "no (cell, bin) to record into".
 NO_RECORD = 0xFFFFFFFF
 
@@ -64,10 +76,10 @@ class _Vertex:
     cell: mi.UInt32
     side: mi.Float
     pair: mi.UInt32 = None
-    norm: mi.Float = None     # N
-    mean: mi.Float = None     # ū = N/2π
-    bound: mi.Float = None    # M′ (M for hemi_rej)
-    mix: float | mi.Float = 0.0   # ε_r
+    norm: mi.Float = None          # N at the normal bin's centre
+    centre: mi.Vector3f = None     # n_c, the normal bin's centre on the arrival side (world)
+    bound: mi.Float = None         # M ≥ max P·cos(ω, n_c)
+    bsdf_share: mi.Float = None    # u = max(ε_r, min_bsdf_share)
 
 
 def _invert_cdf(cdf: mi.Float, row: mi.UInt32, size: int, u: mi.Float, active: mi.Bool) -> mi.UInt32:
@@ -75,17 +87,11 @@ def _invert_cdf(cdf: mi.Float, row: mi.UInt32, size: int, u: mi.Float, active: m
     return dr.binary_search(0, size - 1, lambda i: dr.gather(mi.Float, cdf, row + i, active) <= u)
 
 
-def _direction_from_cdf(bins, cdf: mi.Float, row: mi.UInt32, sampler: mi.Sampler, si: mi.SurfaceInteraction3f,
+def _direction_from_cdf(bins, cdf: mi.Float, row: mi.UInt32, sampler: mi.Sampler,
                         active: mi.Bool) -> tuple[mi.Vector3f, mi.UInt32]:
-    """A bin drawn from one row of per-bin CDFs, then a uniform direction inside it: (local direction, bin)."""
+    """A bin drawn from one row of per-bin CDFs, then a uniform direction inside it: (world direction, bin)."""
     k = _invert_cdf(cdf, row, bins.count, sampler.next_1d(active), active)
-    return si.to_local(bins.direction(k, sampler.next_2d(active))), k
-
-
-def _uniform_on_side(sampler: mi.Sampler, side: mi.Float, active: mi.Bool) -> mi.Vector3f:
-    """A uniform local direction on the hemisphere ``side``."""
-    wo = mi.warp.square_to_uniform_hemisphere(sampler.next_2d(active))
-    return mi.Vector3f(wo.x, wo.y, wo.z * side)
+    return bins.direction(k, sampler.next_2d(active)), k
 
 
 def _arrival_side(si: mi.SurfaceInteraction3f) -> mi.Float:
@@ -109,12 +115,11 @@ class GridGuide(Guide):
       rule: ``mc`` | ``sarsa`` | ``expected_sarsa``.
       sampler: ``sphere_inv`` | ``hemi_inv`` | ``hemi_rej`` | ``hemi_rej_plus``.
       normal_resolution: odd cube-map resolution of the memo tables' normal bins (default 5: 150 bins).
-      bsdf_fraction: BSDF share of the ``sphere_inv`` mixture (default 0.5).
+      bsdf_fraction: BSDF share of the inversion samplers' mixture (default 0.5; 0 is the paper's pure sampler).
       proposal: ``policy`` or ``uniform`` (the paper's loop): how rejection samplers propose. Default: ``policy``
-        for ``hemi_rej_plus``, whose uniform share keeps the weights bounded; ``uniform`` for ``hemi_rej``, whose
-        only defensive share is the capped loop's uniform fallback (measured: without it, door-ajar's per-pass
-        image means are heavy-tailed, median 0.3× the reference instead of 0.8×).
+        for ``hemi_rej_plus``, ``uniform`` for ``hemi_rej``.
       max_proposals: cap of the rejection loop (default 64).
+      min_bsdf_share: least BSDF share of the rejection samplers (default ``MIN_BSDF_SHARE``).
       min_exploration: floor of the exploration share ε (default 0.1; 0 is the paper's schedule exactly).
       name: the method name shown in tables.
     """
@@ -123,7 +128,7 @@ class GridGuide(Guide):
 
     def __init__(self, spatial_resolution: int = 8, directional_resolution: int = 16, rule: str = "sarsa",
                  sampler: str = "hemi_rej_plus", normal_resolution: int = 5, bsdf_fraction: float = 0.5,
-                 proposal: str | None = None, max_proposals: int = 64,
+                 proposal: str | None = None, max_proposals: int = 64, min_bsdf_share: float | None = None,
                  min_exploration: float = MIN_EXPLORATION, name: str | None = None):
         if rule not in RULES:
             raise ValueError(f"unknown learning rule '{rule}' (choose from {', '.join(RULES)})")
@@ -133,10 +138,16 @@ class GridGuide(Guide):
             proposal = default_proposal(sampler)
         if proposal not in PROPOSALS:
             raise ValueError(f"unknown proposal '{proposal}' (choose from {', '.join(PROPOSALS)})")
+        if not 0 <= bsdf_fraction < 1:
+            raise ValueError(f"bsdf_fraction must be in [0, 1), got {bsdf_fraction}")
+        min_bsdf_share = MIN_BSDF_SHARE if min_bsdf_share is None else min_bsdf_share
+        if not 0 < min_bsdf_share <= 1:
+            raise ValueError(f"min_bsdf_share must be in (0, 1], got {min_bsdf_share}")
         self.rule, self.sampler, self.proposal = rule, sampler, proposal
         self.name = name or f"{rule}-{sampler}"
         self.bsdf_fraction = bsdf_fraction
         self.max_proposals = max_proposals
+        self.min_bsdf_share = min_bsdf_share
         self.record_table = RadianceRecord(
             spatial_resolution, directional_resolution, normal_resolution, **table_needs(rule, sampler, proposal),
             min_exploration=min_exploration)
@@ -182,25 +193,29 @@ class GridGuide(Guide):
     def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active):
         bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
         if not self.trained:
+            if self.record_table.needs_pairs:
+                self._locate(si, bsdf, active)     # marks the pairs this pass visits: memoised for the next pass
             return bs, weight
         vertex = self._vertex(si, bsdf, active)
         guided = vertex.guided
-        if self.sampler == "sphere_inv":
-            wo = self._sample_sphere(sampler, si, vertex, bs.wo)
-        elif self.sampler == "hemi_inv":
-            wo, chosen_bin = self._sample_hemi_inv(sampler, si, vertex)
+        if self.sampler.endswith("_inv"):
+            use_guide = guided & (sampler.next_1d(guided) >= self.bsdf_fraction)
+            guide_world, guide_bin = self._sample_inversion(sampler, vertex, use_guide)
+            chosen_bin = dr.select(use_guide, guide_bin, self.record_table.bins.index(si.to_world(bs.wo)))
         else:
-            wo = self._sample_rejection(sampler, si, vertex)
-        value, pdf = self._eval_pdf(si, bsdf, bsdf_ctx, vertex, wo,
-                                    chosen_bin if self.sampler == "hemi_inv" else None)
+            searching = guided & (sampler.next_1d(guided) >= vertex.bsdf_share)
+            guide_world, use_guide = self._sample_rejection(sampler, vertex, searching)
+            chosen_bin = None
+        wo = dr.select(use_guide, si.to_local(guide_world), bs.wo)
+        value, pdf = self._eval_pdf(si, bsdf, bsdf_ctx, vertex, wo, chosen_bin)
 
         guided_weight = dr.select(pdf > 0, value / pdf, 0)
         self._count("guided", 1, guided)
         self._count("invalid", 1, guided & dr.all(guided_weight == 0))
         bs.wo = dr.select(guided, wo, bs.wo)
         bs.pdf = dr.select(guided, pdf, bs.pdf)
-        bs.sampled_type = dr.select(guided, mi.UInt32(mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
-        bs.eta = dr.select(guided, 1.0, bs.eta)
+        bs.sampled_type = dr.select(use_guide, mi.UInt32(mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
+        bs.eta = dr.select(use_guide, 1.0, bs.eta)
         return bs, dr.select(guided, guided_weight, weight)
 
     def pdf(self, si, bsdf, bsdf_ctx, wo, active) -> mi.Float:
@@ -211,110 +226,107 @@ class GridGuide(Guide):
         _, pdf = self._eval_pdf(si, bsdf, bsdf_ctx, vertex, wo)
         return dr.select(vertex.guided, pdf, bsdf.pdf(bsdf_ctx, si, wo, active))
 
-    def _vertex(self, si, bsdf, active, mark_visited=True) -> "_Vertex":
-        """What every sampler needs to know about a vertex; decides which lanes are guided."""
+    def _locate(self, si, bsdf, active, mark_visited=True) -> "_Vertex":
+        """The vertex's cell, arrival side and (cell, normal bin) pair; marks the pair visited."""
         table = self.record_table
         vertex = _Vertex(guided=active & _guidable(bsdf), cell=table.cell(si.p), side=_arrival_side(si))
         if table.needs_pairs:
             vertex.pair = table.pair(vertex.cell, si.sh_frame.n * vertex.side)
             if mark_visited:
                 dr.scatter(table.visited, mi.UInt32(1), vertex.pair, vertex.guided)
+        return vertex
+
+    def _vertex(self, si, bsdf, active, mark_visited=True) -> "_Vertex":
+        """What every sampler needs to know about a vertex; decides which lanes are guided."""
+        table = self.record_table
+        vertex = self._locate(si, bsdf, active, mark_visited)
         if self.sampler.startswith("hemi"):
             vertex.norm = dr.gather(mi.Float, table.norm, vertex.pair, vertex.guided)
             # A pair seen for the first time has no memo yet: its vertices keep BSDF sampling this pass.
             vertex.guided &= vertex.norm > 0
         if self.sampler.startswith("hemi_rej"):
-            bound = dr.gather(mi.Float, table.bound, vertex.pair, vertex.guided)
-            vertex.mean = vertex.norm / (2 * dr.pi)           # ū, the mean of P·cos over the hemisphere
+            vertex.centre = table.normal_bins.normal(vertex.pair % table.normal_bins.count)
+            vertex.bound = dr.gather(mi.Float, table.bound, vertex.pair, vertex.guided)
+            share = mi.Float(0)
             if self.sampler == "hemi_rej_plus":
-                c = vertex.mean / bound
-                vertex.mix = dr.maximum((1 - 2 * c) / (2 - 2 * c), 0)
-            vertex.bound = (1 - vertex.mix) * bound + vertex.mix * vertex.mean   # M′
+                c = vertex.norm / (2 * dr.pi * vertex.bound)     # ū/M, the mean of P·cos over its maximum
+                share = dr.maximum((1 - 2 * c) / (2 - 2 * c), 0)
+            vertex.bsdf_share = dr.maximum(share, self.min_bsdf_share)
         return vertex
 
     def _eval_pdf(self, si, bsdf, bsdf_ctx, vertex, wo, chosen_bin=None) -> tuple[mi.Spectrum, mi.Float]:
-        """BSDF value ``f·cos`` and the guided sampler's density at local direction ``wo``.
+        """BSDF value ``f·cos`` and the density of the mixture ``α·p_bsdf + (1 − α)·p_guide`` at local ``wo``.
 
-        ``chosen_bin`` (hemi_inv): the bin ``wo`` was drawn in, whose density is reported. Looking the direction up
-        again can give a neighbour when ``wo`` lies within rounding of a bin boundary, and a neighbour whose CDF
-        step is below float32 resolution (a policy with ε → 0) would report density 0 for a direction with
-        f·cos > 0."""
+        ``chosen_bin`` (inversion samplers): the bin ``wo`` was drawn in, whose density is reported. Looking the
+        direction up again can give a neighbour when ``wo`` lies within rounding of a bin boundary, and a neighbour
+        whose CDF step is below float32 resolution would report density 0 for a direction the guide drew."""
         table = self.record_table
-        guided = vertex.guided
-        if self.sampler == "sphere_inv":
-            value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
-            guide_pdf = table.policy_at(vertex.cell, si.to_world(wo), guided) / table.bins.solid_angle
-            return value, self.bsdf_fraction * bsdf_pdf + (1 - self.bsdf_fraction) * guide_pdf
-        value = bsdf.eval(bsdf_ctx, si, wo, guided)
-        if self.sampler == "hemi_inv":
-            row = vertex.pair * table.bins.count
-            k = table.bins.index(si.to_world(wo)) if chosen_bin is None else chosen_bin
-            above = dr.gather(mi.Float, table.hemi_cdf, row + k, guided)
-            below = dr.gather(mi.Float, table.hemi_cdf, row + k - 1, guided & (k > 0))
-            return value, (above - below) / table.bins.solid_angle
-        if self.proposal == "policy":
-            acceptance = vertex.norm * table.bins.count / (4 * dr.pi)
+        value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, vertex.guided)
+        world = si.to_world(wo)
+        if self.sampler.endswith("_inv"):
+            k = table.bins.index(world) if chosen_bin is None else chosen_bin
+            bsdf_share, guide_pdf = self.bsdf_fraction, self._bin_probability(vertex, k) / table.bins.solid_angle
         else:
-            acceptance = vertex.norm / (2 * dr.pi * vertex.bound)
-        miss_all = dr.power(1 - dr.minimum(acceptance, 1), self.max_proposals)
-        from_target = (1 - vertex.mix) * (1 - miss_all)
-        pdf = from_target * self._policy_cos(si, vertex, wo) / vertex.norm + (1 - from_target) / (2 * dr.pi)
-        return value, dr.select(wo.z * vertex.side > 0, pdf, 0)
+            if self.proposal == "policy":
+                acceptance = vertex.norm * table.bins.count / (4 * dr.pi)
+            else:
+                acceptance = vertex.norm / (2 * dr.pi * vertex.bound)
+            miss_all = dr.power(1 - dr.minimum(acceptance, 1), self.max_proposals)
+            bsdf_share = 1 - (1 - vertex.bsdf_share) * (1 - miss_all)
+            cosine = dr.maximum(dr.dot(world, vertex.centre), 0)
+            guide_pdf = table.policy_at(vertex.cell, world, vertex.guided) * cosine / vertex.norm
+        return value, bsdf_share * bsdf_pdf + (1 - bsdf_share) * guide_pdf
 
-    def _policy_cos(self, si, vertex, wo) -> mi.Float:
-        """``P(ω)·|cos|``, the hemisphere samplers' target before mixing."""
-        return self.record_table.policy_at(vertex.cell, si.to_world(wo), vertex.guided) * dr.abs(wo.z)
-
-    def _sample_sphere(self, sampler, si, vertex, bsdf_wo) -> mi.Vector3f:
-        """One-sample mixture: the BSDF's direction with probability ``bsdf_fraction``, else the policy's."""
+    def _bin_probability(self, vertex, k: mi.UInt32) -> mi.Float:
+        """Probability of bin ``k`` under the inversion sampler's CDF row (the cell's, or the pair's)."""
         table = self.record_table
-        use_guide = vertex.guided & (sampler.next_1d(vertex.guided) >= self.bsdf_fraction)
-        wo_guide, _ = _direction_from_cdf(table.bins, table.cdf, vertex.cell * table.bins.count, sampler, si,
-                                          use_guide)
-        return dr.select(use_guide, wo_guide, bsdf_wo)
+        if self.sampler == "sphere_inv":
+            return dr.gather(mi.Float, table.policy, vertex.cell * table.bins.count + k, vertex.guided)
+        row = vertex.pair * table.bins.count
+        above = dr.gather(mi.Float, table.hemi_cdf, row + k, vertex.guided)
+        below = dr.gather(mi.Float, table.hemi_cdf, row + k - 1, vertex.guided & (k > 0))
+        return above - below
 
-    def _sample_hemi_inv(self, sampler, si, vertex) -> tuple[mi.Vector3f, mi.UInt32]:
-        """A direction drawn from the pair's CDF, and the bin it was drawn in."""
+    def _sample_inversion(self, sampler, vertex, active) -> tuple[mi.Vector3f, mi.UInt32]:
+        """A world direction drawn from the sampler's CDF row (the cell's, or the pair's), and its bin."""
         table = self.record_table
-        return _direction_from_cdf(table.bins, table.hemi_cdf, vertex.pair * table.bins.count, sampler, si,
-                                   vertex.guided)
+        if self.sampler == "sphere_inv":
+            cdf, row = table.cdf, vertex.cell * table.bins.count
+        else:
+            cdf, row = table.hemi_cdf, vertex.pair * table.bins.count
+        return _direction_from_cdf(table.bins, cdf, row, sampler, active)
 
-    def _sample_rejection(self, sampler, si, vertex) -> mi.Vector3f:
+    def _sample_rejection(self, sampler, vertex, searching) -> tuple[mi.Vector3f, mi.Bool]:
+        """A world direction from the target ``P·cos⁺(ω, n_c)/N`` by rejection, and whether one was accepted
+        within ``max_proposals`` (the others fall back to the BSDF's direction)."""
         table = self.record_table
+        centre = vertex.centre
         if self.proposal == "policy":
-            # The uniform share ε_r of g needs no loop; the loop draws P·|cos| from the sphere policy.
-            searching = vertex.guided & (sampler.next_1d(vertex.guided) >= vertex.mix)
-
             def propose(sampler, active):
-                wo, _ = _direction_from_cdf(table.bins, table.cdf, vertex.cell * table.bins.count, sampler, si,
-                                            active)
+                wo, _ = _direction_from_cdf(table.bins, table.cdf, vertex.cell * table.bins.count, sampler, active)
                 return wo
 
             def accepts(sampler, candidate, active):
-                return sampler.next_1d(active) < candidate.z * vertex.side
+                return sampler.next_1d(active) < dr.dot(candidate, centre)
         else:
-            searching = mi.Bool(vertex.guided)
+            frame = mi.Frame3f(centre)
 
             def propose(sampler, active):
-                return _uniform_on_side(sampler, vertex.side, active)
+                return frame.to_world(mi.warp.square_to_uniform_hemisphere(sampler.next_2d(active)))
 
-            def accepts(sampler, candidate, active):   # ξ·M′ < g = (1 − ε_r)·P·|cos| + ε_r·ū
-                target = (1 - vertex.mix) * self._policy_cos(si, vertex, candidate) + vertex.mix * vertex.mean
+            def accepts(sampler, candidate, active):   # ξ·M < P·cos(ω, n_c)
+                target = table.policy_at(vertex.cell, candidate, active) * dr.dot(candidate, centre)
                 return sampler.next_1d(active) * vertex.bound < target
 
         self._count("rejection_samples", 1, searching)
         wo, accepted, proposals = self._rejection_loop(sampler, mi.Bool(searching), propose, accepts)
         self._count("proposals", proposals, searching)
         self._count("accepted", 1, accepted)
-        # The uniform share, and paths that exhausted the cap, take a fresh uniform direction (not the last,
-        # rejected, proposal).
-        fallback = vertex.guided & ~accepted
-        uniform = _uniform_on_side(sampler, vertex.side, fallback)
-        return dr.select(fallback, uniform, wo)
+        return wo, accepted
 
     @dr.syntax
     def _rejection_loop(self, sampler, searching, propose, accepts) -> tuple[mi.Vector3f, mi.Bool, mi.UInt32]:
-        """Proposals until one ``accepts`` or ``max_proposals`` are spent: (direction, accepted, proposals).
+        """Proposals until one ``accepts`` or ``max_proposals`` are spent: (world direction, accepted, proposals).
 
         ``sampler`` is named in the loop body (not only in the closures) so that its state is a loop variable."""
         wo = mi.Vector3f(0, 0, 1)

@@ -1,0 +1,127 @@
+"""Checks of a guide's sampler at the vertices of a real scene, for this project's tests and for a user's own guide.
+
+A sampler that passes its chi-square test can still be heavy-tailed in a render: the density is right, but where
+it is far below ``f·cos`` the weight ``f·cos/p`` of a rare direction is huge, and a few paths carry the image.
+:func:`single_bounce_weights` measures that weight where it matters, at diffuse vertices that camera paths reach,
+after the guide has trained on the scene (:func:`train`).
+
+    vertices = scene_vertices(scene, count=1000)
+    weights = single_bounce_weights(guide, vertices, samples=4096)
+    weights.mean / weights.albedo      # ≈ 1 for an unbiased sampler
+    weights.maximum / weights.albedo   # the single-bounce bound
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .guides.base import Guide
+
+
+def train(scene: mi.Scene, guide: Guide, spp: int, seed: int = 0, max_depth: int = 16) -> Guide:
+    """Train ``guide`` on ``scene`` as a progressive render of ``spp`` samples per pixel would; returns it."""
+    from .integrator import GuidedPathIntegrator
+    from .render import Budget, render
+
+    props = mi.Properties()
+    props["max_depth"] = max_depth
+    render(scene, GuidedPathIntegrator(props, guide=guide), Budget(spp=spp), seed=seed, progress=False)
+    return guide
+
+
+def scene_vertices(scene: mi.Scene, count: int, seed: int = 0, max_bounces: int = 3) -> mi.SurfaceInteraction3f:
+    """``count`` surface interactions with a purely diffuse BSDF of non-zero albedo that camera paths reach.
+
+    Camera rays through uniformly random film positions are followed by BSDF sampling for up to ``max_bounces``
+    bounces; every diffuse vertex met is a candidate, and ``count`` of them are drawn at random (so vertices deep in
+    the scene, away from the camera's first hits, are included)."""
+    from .guides.grid import _guidable
+
+    lanes = max(4 * count, 1 << 14)
+    sensor = scene.sensors()[0]
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed, lanes)
+    ray, _ = sensor.sample_ray(0.0, 0.5, sampler.next_2d(), sampler.next_2d())
+    found = []
+    active = mi.Bool(True)
+    for _ in range(max_bounces):
+        si = scene.ray_intersect(ray, active)
+        bsdf = si.bsdf(ray)
+        keep = active & si.is_valid() & _guidable(bsdf) & (dr.mean(bsdf.eval_diffuse_reflectance(si, active)) > 0)
+        index = dr.compress(keep)
+        if dr.width(index):
+            found.append(dr.gather(mi.SurfaceInteraction3f, si, index))
+        bs, weight = bsdf.sample(mi.BSDFContext(), si, sampler.next_1d(), sampler.next_2d(), active & si.is_valid())
+        active &= si.is_valid() & dr.any(weight != 0)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+    total = sum(dr.width(f.p) for f in found)
+    if total < count:
+        raise ValueError(f"only {total} diffuse vertices found in the scene, {count} asked for")
+    widths = np.cumsum([0] + [dr.width(f.p) for f in found])
+    pick = np.sort(np.random.default_rng(seed).choice(total, count, replace=False))
+    parts = []
+    for part, f in enumerate(found):
+        local = pick[(pick >= widths[part]) & (pick < widths[part + 1])] - widths[part]
+        if len(local):
+            parts.append(dr.gather(mi.SurfaceInteraction3f, f, mi.UInt32(local)))
+    return parts[0] if len(parts) == 1 else _concatenate(parts)
+
+
+def _concatenate(parts: list[mi.SurfaceInteraction3f]) -> mi.SurfaceInteraction3f:
+    widths = [dr.width(p.p) for p in parts]
+    result = dr.zeros(mi.SurfaceInteraction3f, sum(widths))
+    start = 0
+    for part, width in zip(parts, widths):
+        dr.scatter(result, part, dr.arange(mi.UInt32, start, start + width))
+        start += width
+    return result
+
+
+@dataclass
+class BounceWeights:
+    """Per vertex, over the samples drawn there (each averaged over RGB): the albedo ρ, and the mean, second
+    moment and maximum of the single-bounce weight ``f·cos/p``."""
+
+    albedo: np.ndarray
+    mean: np.ndarray
+    second_moment: np.ndarray
+    maximum: np.ndarray
+    samples: int
+
+    def mean_ratio(self) -> tuple[float, float]:
+        """Σ mean / Σ albedo and its standard error: 1 for an unbiased sampler."""
+        variance = np.maximum(self.second_moment - self.mean ** 2, 0) / self.samples
+        return float(self.mean.sum() / self.albedo.sum()), float(np.sqrt(variance.sum()) / self.albedo.sum())
+
+    def largest_ratio(self) -> float:
+        """The largest weight relative to its vertex's albedo."""
+        return float(np.max(self.maximum / self.albedo))
+
+    def second_moment_ratio(self) -> float:
+        """Σ second moment / Σ albedo²: 1 for cosine sampling of a diffuse BSDF, the variance a bounce adds."""
+        return float(self.second_moment.sum() / (self.albedo ** 2).sum())
+
+
+def single_bounce_weights(guide: Guide, vertices: mi.SurfaceInteraction3f, samples: int = 4096,
+                          seed: int = 0, scene: mi.Scene | None = None, batch: int = 1 << 22) -> BounceWeights:
+    """Draw ``samples`` directions with ``guide`` at each of ``vertices`` and summarise their weights."""
+    count = dr.width(vertices.p)
+    per_batch = max(1, batch // samples)
+    sums, squares, maxima = (np.zeros(count) for _ in range(3))
+    ctx = mi.BSDFContext()
+    for first in range(0, count, per_batch):
+        lanes = min(per_batch, count - first) * samples
+        owner = mi.UInt32(first) + dr.arange(mi.UInt32, lanes) // samples
+        si = dr.gather(mi.SurfaceInteraction3f, vertices, owner)
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(seed + first, lanes)
+        _, weight = guide.sample(scene, sampler, si, si.bsdf(), ctx, dr.full(mi.Bool, True, lanes))
+        w = np.array(dr.mean(weight), dtype=np.float64).reshape(-1, samples)
+        rows = slice(first, first + w.shape[0])
+        sums[rows], squares[rows], maxima[rows] = w.mean(1), (w ** 2).mean(1), w.max(1)
+    albedo = np.array(dr.mean(vertices.bsdf().eval_diffuse_reflectance(vertices)), dtype=np.float64)
+    return BounceWeights(albedo, sums, squares, maxima, samples)
