@@ -39,7 +39,7 @@ def scene_vertices(scene: mi.Scene, count: int, seed: int = 0, max_bounces: int 
     Camera rays through uniformly random film positions are followed by BSDF sampling for up to ``max_bounces``
     bounces; every diffuse vertex met is a candidate, and ``count`` of them are drawn at random (so vertices deep in
     the scene, away from the camera's first hits, are included)."""
-    from .guides.grid import _guidable
+    from .guides.grid import guidable
 
     lanes = max(4 * count, 1 << 14)
     sensor = scene.sensors()[0]
@@ -51,7 +51,7 @@ def scene_vertices(scene: mi.Scene, count: int, seed: int = 0, max_bounces: int 
     for _ in range(max_bounces):
         si = scene.ray_intersect(ray, active)
         bsdf = si.bsdf(ray)
-        keep = active & si.is_valid() & _guidable(bsdf) & (dr.mean(bsdf.eval_diffuse_reflectance(si, active)) > 0)
+        keep = active & si.is_valid() & guidable(bsdf) & (dr.mean(bsdf.eval_diffuse_reflectance(si, active)) > 0)
         index = dr.compress(keep)
         if dr.width(index):
             found.append(dr.gather(mi.SurfaceInteraction3f, si, index))
