@@ -6,3 +6,17 @@ budget), :mod:`~guiding.metrics`, :mod:`~guiding.imageio`, :mod:`~guiding.scenes
 """
 
 __version__ = "0.1.0"
+
+
+def _register_plugin() -> None:
+    """Register the ``guided_path`` integrator when a Mitsuba variant is already set (``guiding.backend.set_variant``
+    registers it for variants chosen later)."""
+    import mitsuba as mi
+
+    if mi.variant() is not None:
+        from .integrator import register
+
+        register()
+
+
+_register_plugin()

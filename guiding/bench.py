@@ -18,7 +18,7 @@ import mitsuba as mi
 import numpy as np
 import pandas as pd
 
-from .render import pass_seed
+from .render import pass_seed, render_pass
 
 
 @dataclass
@@ -40,7 +40,7 @@ class PassTiming:
 def _timed_pass(scene: mi.Scene, integrator, spp: int, seed: int, spp_done: int) -> PassTiming:
     dr.kernel_history()   # discard what ran before
     start = time.perf_counter()
-    image = mi.render(scene, integrator=integrator, spp=spp, seed=seed)
+    image = render_pass(scene, integrator, 0, seed, spp)
     dr.eval(image)
     dr.sync_thread()
     wall = time.perf_counter() - start

@@ -5,8 +5,10 @@ tells it what each vertex saw. Following Kim & Kim (2021), emitters are found on
 next-event estimation), paths stop at ``max_depth``, and Russian roulette starts at ``rr_depth`` with the
 continuation probability ``q = max(max_rgb(β), rr_min)``.
 
-Usable from XML (``<integrator type="guided_path"><string name="method" value="brdf"/></integrator>``), from
-``mi.load_dict({'type': 'guided_path', ...})``, or built in Python with an explicit guide object.
+Usable from XML (``<integrator type="guided_path"><string name="method" value="ours"/></integrator>``), from
+``mi.load_dict({'type': 'guided_path', ...})``, or built in Python with an explicit guide object. ``mi.render``
+trains the guide: it runs the progressive passes of :func:`guiding.render.render` (``pass_spp`` each, the guide
+updated in between) and returns their image.
 """
 
 from __future__ import annotations
@@ -26,10 +28,13 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
       ``rr_depth`` (int, 8): depth from which Russian roulette may end a path.
       ``rr_min`` (float, 0.05): lower bound of the continuation probability ``q = max(max_rgb(β), rr_min)``.
       ``method`` (str, "brdf"): a method name of :mod:`guiding.methods`; ignored when a guide is passed.
+      ``pass_spp`` (int, 8): samples per pixel of each pass of ``mi.render``; the guide updates between passes.
+      ``seconds`` (float, 0): when positive, ``mi.render`` renders for this many seconds instead of ``spp``.
 
     Attributes read by the progressive renderer and the benchmark after each pass: ``path_count``,
     ``hit_count`` (paths with a non-zero contribution) and ``ray_count`` (rays traced), reset by
-    :meth:`reset_counters`.
+    :meth:`reset_counters`. After ``mi.render``, ``last_result`` holds the :class:`~guiding.render.RenderResult`
+    (per-pass statistics, iterations, when training stopped).
     """
 
     def __init__(self, props: mi.Properties = None, guide: Guide | None = None):
@@ -38,14 +43,50 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         self.max_depth = props.get("max_depth", 16)
         self.rr_depth = props.get("rr_depth", 8)
         self.rr_min = props.get("rr_min", 0.05)
+        self.pass_spp = props.get("pass_spp", 8)
+        self.seconds = props.get("seconds", 0.0)
         if self.max_depth < 1:
             raise ValueError(f"max_depth must be >= 1, got {self.max_depth}")
+        if self.pass_spp < 1:
+            raise ValueError(f"pass_spp must be >= 1, got {self.pass_spp}")
         if guide is None:
             from .methods import make_guide
 
             guide = make_guide(props.get("method", "brdf"))
         self.guide = guide
+        self.last_result = None
+        self._one_pass = False
         self.reset_counters()
+
+    def render(self, scene: mi.Scene, sensor: int | mi.Sensor = 0, seed: int = 0, spp: int = 0,
+               develop: bool = True, evaluate: bool = True) -> mi.TensorXf:
+        """What ``mi.render`` calls: progressive passes with the guide's updates in between; the final RGB image.
+
+        ``spp`` 0 takes the sensor's sample count; a positive ``seconds`` parameter replaces it by a time budget."""
+        if self._one_pass:
+            # Mitsuba's trampoline sends every call of the base method to this override unless the override is
+            # already running: called from here, the base method renders the pass.
+            return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
+        from .render import Budget, render
+
+        if not develop:
+            raise ValueError("guided_path renders progressive passes and returns their image: develop=False is "
+                             "not supported")
+        sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        if self.seconds > 0:
+            budget = Budget(seconds=self.seconds, pass_spp=self.pass_spp)
+        else:
+            budget = Budget(spp=spp or sensor.sampler().sample_count(), pass_spp=self.pass_spp)
+        self.last_result = render(scene, self, budget, seed=seed, sensor=sensor)
+        return mi.TensorXf(self.last_result.image)
+
+    def render_pass(self, scene: mi.Scene, sensor: mi.Sensor, seed: int, spp: int) -> mi.TensorXf:
+        """One pass of ``spp`` samples per pixel with the guide as it is (Mitsuba's own ``render``)."""
+        self._one_pass = True
+        try:
+            return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, True, True)
+        finally:
+            self._one_pass = False
 
     def reset_counters(self) -> None:
         self.path_count = mi.UInt32(0)
@@ -113,7 +154,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
 
     def to_string(self) -> str:
         return (f"GuidedPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
-                f"guide={self.guide.name}]")
+                f"pass_spp={self.pass_spp}, guide={self.guide.name}]")
 
 
 _registered = set()

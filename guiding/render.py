@@ -323,8 +323,19 @@ def next_iteration_fits(iteration: IterationStats, next_spp: int, remaining_seco
     return estimate <= remaining_seconds, estimate
 
 
+def render_pass(scene: mi.Scene, integrator: mi.SamplingIntegrator, sensor: int | mi.Sensor, seed: int,
+                 spp: int) -> mi.TensorXf:
+    """One pass: ``guided_path`` renders it without its own progressive loop, any other integrator by ``mi.render``."""
+    from .integrator import GuidedPathIntegrator
+
+    if isinstance(integrator, GuidedPathIntegrator):
+        return integrator.render_pass(scene, scene.sensors()[sensor] if isinstance(sensor, int) else sensor, seed,
+                                      spp)
+    return mi.render(scene, integrator=integrator, spp=spp, seed=seed, sensor=sensor)
+
+
 def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, seed: int = 0,
-           progress: bool | None = None, sensor: int = 0, combine: str = COMBINE_LAST,
+           progress: bool | None = None, sensor: int | mi.Sensor = 0, combine: str = COMBINE_LAST,
            snapshot: Callable[[int, np.ndarray, float, int], None] | None = None,
            on_pass: Callable[[PassStats, np.ndarray], None] | None = None) -> RenderResult:
     """Render ``scene`` progressively with ``integrator`` (a ``guided_path`` integrator or any Mitsuba one).
@@ -336,7 +347,7 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
       budget: when to stop (:class:`Budget`).
       seed: run seed; pass ``i`` uses ``pass_seed(seed, i)``.
       progress: show a progress line on stderr (default: when stderr is a terminal).
-      sensor: index of the sensor to render.
+      sensor: the sensor to render, or its index.
       combine: the final image of a guide with iterations: ``"last"`` or ``"inverse-variance"`` (module docstring).
       snapshot: called as ``snapshot(spp_total, image, counted_seconds, spp_in_image)`` with the image the render
         would return now (float64), after each pass that completes ``pass_spp · 2^k`` spp and after the last
@@ -392,8 +403,7 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
                 if counters:
                     integrator.reset_counters()
                 start = time.perf_counter()
-                image = mi.render(scene, integrator=integrator, spp=spp, seed=pass_seed(seed, index),
-                                  sensor=sensor)
+                image = render_pass(scene, integrator, sensor, pass_seed(seed, index), spp)
                 images.add_pass(image, spp)
                 dr.sync_thread()
                 seconds = time.perf_counter() - start

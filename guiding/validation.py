@@ -10,7 +10,7 @@ import numpy as np
 import mitsuba as mi
 
 from .guides import RULES, SAMPLERS
-from .render import pass_seed
+from .render import pass_seed, render_pass
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -30,7 +30,7 @@ def pass_means(scene: mi.Scene, integrator, passes: int, spp: int, seed: int = 0
         guide.prepare(scene)
     means = []
     for index in range(passes):
-        image = mi.render(scene, integrator=integrator, spp=spp, seed=pass_seed(seed, index))
+        image = render_pass(scene, integrator, 0, pass_seed(seed, index), spp)
         means.append(np.asarray(image, dtype=np.float64)[..., :3].mean(axis=(0, 1)))
         if guide is not None:
             guide.update((index + 1) * spp)

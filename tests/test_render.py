@@ -75,19 +75,17 @@ class FakeClock:
     def __init__(self, monkeypatch, cost_per_spp: float):
         import types
 
-        import mitsuba as mi
-
         import guiding.render as render_module
 
         self.now = 0.0
-        real_render, real_costs = mi.render, render_module._kernel_costs
+        real_pass, real_costs = render_module.render_pass, render_module._kernel_costs
 
-        def timed_render(*args, spp, **kwargs):
-            image = real_render(*args, spp=spp, **kwargs)
+        def timed_pass(scene, integrator, sensor, seed, spp):
+            image = real_pass(scene, integrator, sensor, seed, spp)
             self.now += cost_per_spp * spp
             return image
 
-        monkeypatch.setattr(mi, "render", timed_render)
+        monkeypatch.setattr(render_module, "render_pass", timed_pass)
         monkeypatch.setattr(render_module, "time", types.SimpleNamespace(perf_counter=lambda: self.now))
         monkeypatch.setattr(render_module, "_kernel_costs", lambda history: (0.0, *real_costs(history)[1:]))
 

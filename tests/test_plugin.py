@@ -1,0 +1,52 @@
+"""The `guided_path` plugin used the way Mitsuba users use plugins: loaded from XML or a dict and rendered with plain
+``mi.render``, it trains its guide (progressive passes with updates in between), as ``python -m guiding render``."""
+
+import mitsuba as mi
+import numpy as np
+
+import guiding  # noqa: F401  (registers guided_path for the variant the tests set)
+from guiding.integrator import GuidedPathIntegrator
+from guiding.methods import make_guide
+from guiding.metrics import mae_tonemapped
+from guiding.render import Budget, render
+from guiding.scenes import load_scene
+
+SPP = 256
+
+
+def test_mi_render_trains_the_guide_like_the_renderer():
+    scene = load_scene("door-ajar", scale=0.2)
+    reference = render(scene, mi.load_dict({"type": "path", "max_depth": 16}), Budget(spp=1024, pass_spp=64),
+                       seed=7, progress=False).image
+    plugin = mi.load_dict({"type": "guided_path", "method": "ours"})
+    image = np.asarray(mi.render(scene, integrator=plugin, spp=SPP, seed=1))
+    renderer = render(scene, GuidedPathIntegrator(guide=make_guide("ours")), Budget(spp=SPP), seed=1,
+                      progress=False)
+    # The same passes with the same seeds: the same image as the renderer's.
+    assert plugin.guide.trained and plugin.last_result.spp == SPP
+    assert sum(p.guide.get("guided_samples", 0) for p in plugin.last_result.passes) > 0
+    np.testing.assert_allclose(image[..., :3], renderer.image, rtol=1e-4, atol=1e-5)
+    brdf = mi.render(scene, integrator=mi.load_dict({"type": "guided_path", "method": "brdf"}), spp=SPP, seed=1)
+    assert mae_tonemapped(image[..., :3], reference) < mae_tonemapped(np.asarray(brdf)[..., :3], reference)
+
+
+def test_xml_integrator_trains_under_mi_render():
+    scene = mi.load_string("""
+    <scene version="3.0.0">
+        <integrator type="guided_path">
+            <string name="method" value="ours"/>
+            <integer name="pass_spp" value="4"/>
+        </integrator>
+        <sensor type="perspective">
+            <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+            <sampler type="independent"><integer name="sample_count" value="16"/></sampler>
+            <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+        </sensor>
+        <shape type="rectangle"><bsdf type="diffuse"/></shape>
+        <emitter type="constant"/>
+    </scene>""")
+    image = mi.render(scene)
+    integrator = scene.integrator()
+    assert image.shape[:2] == (16, 16)
+    assert integrator.guide.trained
+    assert [p.spp for p in integrator.last_result.passes] == [4, 4, 4, 4]
