@@ -360,8 +360,7 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
     guide = getattr(integrator, "guide", None)
     if guide is not None:
         guide.prepare(scene)
-        if hasattr(guide, "set_budget"):
-            guide.set_budget(budget.spp)
+        guide.set_budget(budget.spp)
     counters = hasattr(integrator, "reset_counters")
 
     images = _IterationImages(combine)
@@ -429,7 +428,7 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
                 if guide_stats.get("iteration_done"):
                     ended = current_iteration()
                     fits = True
-                    if budget.seconds is not None and guide.learns and hasattr(guide, "stop_training"):
+                    if budget.seconds is not None and guide.learns and guide.iteration_spp() is not None:
                         next_spp, remaining = guide.iteration_spp(), budget.seconds - counted
                         fits, estimate = next_iteration_fits(ended, next_spp, remaining)
                     if fits:

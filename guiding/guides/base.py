@@ -44,6 +44,20 @@ class Guide:
         """Memory and configuration figures for ``stats.json``."""
         return {}
 
+    # ----------------------------------------------------------- schedule (host side)
+    # A guide whose learning runs in iterations (the SD-tree) ends one by reporting ``iteration_done`` in the
+    # statistics of ``update``; the renderer then asks ``iteration_spp`` whether the next fits a seconds budget and
+    # calls ``stop_training`` when it does not. Guides without iterations keep these defaults and are never asked.
+    def set_budget(self, spp: int | None) -> None:
+        """The render's spp budget (None under a seconds budget), told once before the first pass."""
+
+    def iteration_spp(self) -> int | None:
+        """Length in spp of the iteration the next pass belongs to; None for a guide without iterations."""
+        return None
+
+    def stop_training(self) -> None:
+        """Freeze the distributions: the remaining passes record nothing and run to the end of the budget."""
+
     # -------------------------------------------------------------- device side
     def new_paths(self, size: int, max_depth: int):
         """Per-path state for ``size`` paths of at most ``max_depth`` vertices (a Dr.Jit PyTree)."""
@@ -67,3 +81,9 @@ class Guide:
 
     def finish_paths(self, state) -> None:
         """Called once after the path loop with the final per-path state."""
+
+    def pdf(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, wo: mi.Vector3f,
+            active: mi.Bool) -> mi.Float:
+        """Density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si`` (the chi-square
+        tests compare it with the samples); BSDF sampling's by default."""
+        return bsdf.pdf(bsdf_ctx, si, wo, active)
