@@ -126,7 +126,6 @@ class RadianceRecord:
         self.bbox_min = mi.Point3f(0)
         self.inv_extent = mi.Vector3f(1)
         self.sanitised: dict[str, int] = {}
-        self.sanitised_total: dict[str, int] = {}
         self.acc_sum = dr.zeros(mi.Float64, C * B)
         self.acc_count = dr.zeros(mi.Float64, C * B)
         self.q = dr.zeros(mi.Float, C * B)
@@ -224,7 +223,7 @@ class RadianceRecord:
         """Drop the history of (cell, bin) entries whose accumulators hold NaN, ±Inf or a negative value (a bad
         target, or memory corruption): never cleared, they would keep Q, and through the normaliser the whole
         cell's policy, NaN forever. ``sanitised`` counts, for this update, the entries dropped and the entries whose
-        Q was clamped to Q_LIMIT; ``sanitised_total`` since the start."""
+        Q was clamped to Q_LIMIT."""
         visits = self.acc_count
         mean = self.acc_sum / dr.maximum(visits, 1)
         bad = ~(dr.isfinite(mean) & dr.isfinite(visits) & (mean >= 0) & (visits >= 0))
@@ -233,8 +232,6 @@ class RadianceRecord:
         dr.eval(self.acc_sum, self.acc_count)
         self.sanitised = {"dropped_entries": int(dr.count(bad)[0]),
                           "clamped_entries": int(dr.count(~bad & (visits > 0) & (mean > Q_LIMIT))[0])}
-        for key, value in self.sanitised.items():
-            self.sanitised_total[key] = self.sanitised_total.get(key, 0) + value
 
     def _update_memo(self) -> int:
         B, NB = self.bins.count, self.normal_bins.count

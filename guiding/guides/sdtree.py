@@ -589,7 +589,6 @@ class _TreeGuide(Guide):
         self._energy_acc = None
         self._count_acc = None
         self.sanitised = {"dropped_entries": 0}          # bad accumulator entries of the last update (_pull)
-        self.sanitised_total = {"dropped_entries": 0}
 
     # -------------------------------------------------------------------------------------- device side
     def _locate(self, p, active):
@@ -713,7 +712,6 @@ class _TreeGuide(Guide):
         bad_energy, bad_counts = ~(np.isfinite(energy) & (energy >= 0)), ~(np.isfinite(counts) & (counts >= 0))
         energy[bad_energy], counts[bad_counts] = 0.0, 0.0
         self.sanitised = {"dropped_entries": int(bad_energy.sum() + bad_counts.sum())}
-        self.sanitised_total["dropped_entries"] += self.sanitised["dropped_entries"]
         return energy, counts
 
     def _forest_stats(self, forest: Forest, prefix: str) -> dict:
