@@ -55,7 +55,6 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
             guide = make_guide(props.get("method", "brdf"))
         self.guide = guide
         self.last_result = None
-        self._one_pass = False
         self.reset_counters()
 
     def render(self, scene: mi.Scene, sensor: int | mi.Sensor = 0, seed: int = 0, spp: int = 0,
@@ -63,10 +62,6 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         """What ``mi.render`` calls: progressive passes with the guide's updates in between; the final RGB image.
 
         ``spp`` 0 takes the sensor's sample count; a positive ``seconds`` parameter replaces it by a time budget."""
-        if self._one_pass:
-            # Mitsuba's trampoline sends every call of the base method to this override unless the override is
-            # already running: called from here, the base method renders the pass.
-            return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
         from .render import Budget, render
 
         if not develop:
@@ -82,11 +77,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
 
     def render_pass(self, scene: mi.Scene, sensor: mi.Sensor, seed: int, spp: int) -> mi.TensorXf:
         """One pass of ``spp`` samples per pixel with the guide as it is (Mitsuba's own ``render``)."""
-        self._one_pass = True
-        try:
-            return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, True, True)
-        finally:
-            self._one_pass = False
+        return mi.render(scene, integrator=_PassRenderer(self), sensor=sensor, seed=seed, spp=spp)
 
     def reset_counters(self) -> None:
         self.path_count = mi.UInt32(0)
@@ -155,6 +146,22 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     def to_string(self) -> str:
         return (f"GuidedPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"pass_spp={self.pass_spp}, guide={self.guide.name}]")
+
+
+class _PassRenderer(mi.SamplingIntegrator):
+    """Mitsuba's own ``render`` of one pass, tracing the paths with ``integrator.sample``.
+
+    A separate object because Mitsuba's trampoline sends a call of the base ``render`` on a GuidedPathIntegrator back
+    to its Python ``render`` (the progressive loop) unless that is running, and reaching the base from there nests
+    two bindings whose Ctrl-C handlers swallow the signal. Made for each pass, and not kept by the integrator:
+    ``mi.render`` traverses the integrator's attributes, and a reference cycle would never end."""
+
+    def __init__(self, integrator: GuidedPathIntegrator):
+        super().__init__(mi.Properties())
+        self.integrator = integrator
+
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        return self.integrator.sample(scene, sampler, ray, medium, active)
 
 
 _registered = set()
