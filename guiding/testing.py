@@ -58,17 +58,12 @@ def scene_vertices(scene: mi.Scene, count: int, seed: int = 0, max_bounces: int 
         bs, weight = bsdf.sample(mi.BSDFContext(), si, sampler.next_1d(), sampler.next_2d(), active & si.is_valid())
         active &= si.is_valid() & dr.any(weight != 0)
         ray = si.spawn_ray(si.to_world(bs.wo))
-    total = sum(dr.width(f.p) for f in found)
+    candidates = _concatenate(found)
+    total = dr.width(candidates.p)
     if total < count:
         raise ValueError(f"only {total} diffuse vertices found in the scene, {count} asked for")
-    widths = np.cumsum([0] + [dr.width(f.p) for f in found])
     pick = np.sort(np.random.default_rng(seed).choice(total, count, replace=False))
-    parts = []
-    for part, f in enumerate(found):
-        local = pick[(pick >= widths[part]) & (pick < widths[part + 1])] - widths[part]
-        if len(local):
-            parts.append(dr.gather(mi.SurfaceInteraction3f, f, mi.UInt32(local)))
-    return parts[0] if len(parts) == 1 else _concatenate(parts)
+    return dr.gather(mi.SurfaceInteraction3f, candidates, mi.UInt32(pick))
 
 
 def _concatenate(parts: list[mi.SurfaceInteraction3f]) -> mi.SurfaceInteraction3f:
