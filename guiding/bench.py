@@ -13,12 +13,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pandas as pd
 
-from .render import pass_seed, render_pass
+from .driver import PassDriver, pass_seed
 
 
 @dataclass
@@ -37,31 +36,13 @@ class PassTiming:
     memo_pairs: int = 0         # (cell, normal bin) pairs with memo tables (only those paths visited)
 
 
-def _timed_pass(scene: mi.Scene, integrator, spp: int, seed: int, spp_done: int) -> PassTiming:
-    dr.kernel_history()   # discard what ran before
-    start = time.perf_counter()
-    image = render_pass(scene, integrator, 0, seed, spp)
-    dr.eval(image)
-    dr.sync_thread()
-    wall = time.perf_counter() - start
-    history = dr.kernel_history()
-    timing = PassTiming(wall=wall, kernel=sum(k.get("execution_time", 0.0) for k in history) / 1e3,
-                        compile=sum(k.get("codegen_time", 0.0) + k.get("backend_time", 0.0) for k in history) / 1e3,
-                        update=0.0, refine=0.0)
-    if hasattr(integrator, "reset_counters"):
-        timing.paths, timing.hits = int(integrator.path_count[0]), int(integrator.hit_count[0])
-        timing.rays = int(integrator.ray_count[0])
-        integrator.reset_counters()
-    guide = getattr(integrator, "guide", None)
-    if guide is not None:
-        start = time.perf_counter()
-        stats = guide.update(spp_done)
-        dr.sync_thread()
-        timing.update = time.perf_counter() - start
-        timing.refine = stats.get("refine_seconds", 0.0)
-        timing.guided = stats.get("guided_samples")
-        timing.memo_pairs = stats.get("memo_pairs", 0)
-    return timing
+def _timed_pass(driver: PassDriver, spp: int, seed: int) -> PassTiming:
+    outcome = driver.run(seed, spp)
+    stats = outcome.update.stats
+    return PassTiming(wall=outcome.seconds, kernel=outcome.kernels.execution_seconds,
+                      compile=outcome.kernels.compile_seconds, update=outcome.update_seconds,
+                      refine=stats.get("refine_seconds", 0.0), paths=outcome.paths, hits=outcome.hits,
+                      rays=outcome.rays, guided=stats.get("guided_samples"), memo_pairs=stats.get("memo_pairs", 0))
 
 
 def interleaved_passes(scene: mi.Scene, integrators: dict[str, object], passes: int = 12, pass_spp: int = 8,
@@ -69,16 +50,13 @@ def interleaved_passes(scene: mi.Scene, integrators: dict[str, object], passes: 
     """``warmup + passes`` passes of every integrator, interleaved (A, B, A, B, …) so that machine noise hits
     them alike; returns the timed passes (warm-up passes dropped, except that compile time of every pass is
     kept in the first timed record's ``compile``)."""
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    for integrator in integrators.values():
-        guide = getattr(integrator, "guide", None)
-        if guide is not None:
-            guide.prepare(scene)
+    drivers = {name: PassDriver(scene, integrator) for name, integrator in integrators.items()}
+    for driver in drivers.values():
+        driver.prepare()
     timings = {name: [] for name in integrators}
     for index in range(warmup + passes):
-        for name, integrator in integrators.items():
-            timings[name].append(_timed_pass(scene, integrator, pass_spp, pass_seed(0, index),
-                                             (index + 1) * pass_spp))
+        for name, driver in drivers.items():
+            timings[name].append(_timed_pass(driver, pass_spp, pass_seed(0, index)))
     timed = {}
     for name, records in timings.items():
         timed[name] = records[warmup:]

@@ -88,6 +88,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f, medium: mi.Medium = None,
                active: mi.Bool = True) -> tuple[mi.Spectrum, mi.Bool, list]:
         guide = self.guide
+        records = guide.records()
         bsdf_ctx = mi.BSDFContext()
 
         # --------------------------- Configure loop state ---------------------------
@@ -126,7 +127,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
             continues &= survives & dr.any(weight != 0)
 
             # ----------------------------- Learning -----------------------------
-            if dr.hint(guide.learns, mode="scalar"):
+            if dr.hint(records, mode="scalar"):
                 path_state = guide.record(path_state, si, emitted, bs, weight, continues, active)
 
             # --------------------------- Next segment ---------------------------
@@ -134,7 +135,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
             ray = si.spawn_ray(si.to_world(bs.wo))
             active = continues
 
-        if dr.hint(guide.learns, mode="scalar"):
+        if dr.hint(records, mode="scalar"):
             guide.finish_paths(path_state)
 
         hit = dr.any(L != 0)

@@ -2,8 +2,9 @@
 
 **Iterations.** Passes accumulate (in float64) into the image of the current *iteration*. A guide without a schedule
 (the grid guide, BSDF sampling) has a single iteration, so the image is the mean over all passes, training passes
-included, as in the paper. A guide whose update reports ``iteration_done`` (the SD-tree's doubling schedule) closes
-an iteration there and the next pass starts a new image; the final image is then (``combine``)
+included, as in the paper. A guide whose update reports ``iteration_done`` (:class:`~guiding.guides.base.UpdateResult`;
+the SD-tree's doubling schedule) closes an iteration there and the next pass starts a new image; the final image is
+then (``combine``)
 
 * ``"last"``: the last iteration alone (Müller et al. 2017), or
 * ``"inverse-variance"``: the mean of the last :data:`COMBINED_ITERATIONS` iterations weighted by the inverse of
@@ -28,7 +29,8 @@ seconds) is in :attr:`RenderResult.training_stopped`, also when the guide's own 
 **Snapshots.** ``snapshot`` is called with the image the render would return if it stopped now, after every pass
 that completes ``pass_spp · 2^k`` spp and after the last pass (:class:`SnapshotWriter` writes them to EXR files).
 
-After each pass the device is synchronised, the pass is timed, and the guide updates its distributions.
+Each pass goes through :class:`guiding.driver.PassDriver`: the device is synchronised, the pass is timed, and the
+guide updates its distributions.
 Pass-varying values (the seed) reach the kernel as parameters, so the same compiled kernel serves every pass;
 ``kernels_compiled`` in the per-pass statistics shows it.
 
@@ -43,7 +45,6 @@ its first 80 spp, which contained compilation). The bookkeeping between passes (
 from __future__ import annotations
 
 import sys
-import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -53,6 +54,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .driver import PassDriver, pass_seed
 from .errors import GuidingError
 
 COMBINE_LAST = "last"
@@ -99,7 +101,8 @@ class PassStats:
     kernels_launched: int
     kernels_compiled: int    # kernels new to this process (compiled, or loaded from the disk cache)
     hit_rate: float          # fraction of paths with a non-zero contribution
-    guide: dict = field(default_factory=dict)
+    guide: dict = field(default_factory=dict)   # the guide's statistics of its update after this pass
+    iteration_done: bool = False                # the update ended one of the guide's iterations
 
     @property
     def counted_seconds(self) -> float:
@@ -166,11 +169,6 @@ class RenderResult:
 
 def _spp_weighted_hit_rate(passes: list[PassStats]) -> float:
     return float(np.average([p.hit_rate for p in passes], weights=[p.spp for p in passes]))
-
-
-def pass_seed(seed: int, index: int) -> int:
-    """A distinct 32-bit sampler seed for every (run seed, pass) pair."""
-    return int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
 
 
 def is_snapshot_spp(spp_total: int, pass_spp: int) -> bool:
@@ -299,18 +297,10 @@ class _Progress:
             sys.stderr.write("\n")
 
 
-def _kernel_costs(history: list[dict]) -> tuple[float, int, int]:
-    """(compile seconds, launched JIT kernels, compiled JIT kernels) of one pass's kernel history."""
-    jit = [k for k in history if k.get("type") == dr.KernelType.JIT]
-    compile_ms = sum(k.get("codegen_time", 0.0) + k.get("backend_time", 0.0) for k in jit)
-    compiled = sum(1 for k in jit if not k.get("cache_hit", False))
-    return compile_ms / 1000.0, len(jit), compiled
-
-
 def _iteration_record(index: int, passes: list[PassStats]) -> IterationStats:
     """The record of an iteration made of ``passes``; its guide statistics are those of the pass that ended its
     training (with the refinement it triggered), or of its last pass."""
-    closing = next((p for p in reversed(passes) if p.guide.get("iteration_done")), passes[-1])
+    closing = next((p for p in reversed(passes) if p.iteration_done), passes[-1])
     return IterationStats(index, passes[0].spp_total - passes[0].spp, passes[-1].spp_total, len(passes),
                           sum(p.counted_seconds for p in passes), _spp_weighted_hit_rate(passes),
                           guide=dict(closing.guide))
@@ -321,17 +311,6 @@ def next_iteration_fits(iteration: IterationStats, next_spp: int, remaining_seco
     ``iteration``, fits in ``remaining_seconds``."""
     estimate = next_spp * iteration.seconds / iteration.spp
     return estimate <= remaining_seconds, estimate
-
-
-def render_pass(scene: mi.Scene, integrator: mi.SamplingIntegrator, sensor: int | mi.Sensor, seed: int,
-                 spp: int) -> mi.TensorXf:
-    """One pass: ``guided_path`` renders it without its own progressive loop, any other integrator by ``mi.render``."""
-    from .integrator import GuidedPathIntegrator
-
-    if isinstance(integrator, GuidedPathIntegrator):
-        return integrator.render_pass(scene, scene.sensors()[sensor] if isinstance(sensor, int) else sensor, seed,
-                                      spp)
-    return mi.render(scene, integrator=integrator, spp=spp, seed=seed, sensor=sensor)
 
 
 def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, seed: int = 0,
@@ -357,11 +336,9 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
     """
     if combine not in COMBINE_MODES:
         raise GuidingError(f"unknown combination '{combine}' (known: {', '.join(COMBINE_MODES)})")
-    guide = getattr(integrator, "guide", None)
-    if guide is not None:
-        guide.prepare(scene)
-        guide.set_budget(budget.spp)
-    counters = hasattr(integrator, "reset_counters")
+    driver = PassDriver(scene, integrator, sensor)
+    driver.prepare(budget.spp)
+    guide = driver.guide
 
     images = _IterationImages(combine)
     passes: list[PassStats] = []
@@ -385,71 +362,54 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
         snapshot_spp = spp_total
 
     try:
-        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-            dr.kernel_history()  # discard what ran before this render
-            while True:
-                if budget.spp is not None:
-                    if spp_total >= budget.spp:
-                        break
-                    spp = min(budget.pass_spp, budget.spp - spp_total)
+        while True:
+            if budget.spp is not None:
+                if spp_total >= budget.spp:
+                    break
+                spp = min(budget.pass_spp, budget.spp - spp_total)
+            else:
+                if counted >= budget.seconds:
+                    break
+                spp = budget.pass_spp
+            index = len(passes)
+
+            # ------------------------------ Render and update ------------------------------
+            recorded = guide is not None and guide.records()
+            outcome = driver.run(pass_seed(seed, index), spp, accumulate=lambda image: images.add_pass(image, spp))
+            spp_total += spp
+            passes.append(PassStats(index, spp, spp_total, outcome.seconds, outcome.update_seconds,
+                                    outcome.kernels.compile_seconds, outcome.kernels.launched,
+                                    outcome.kernels.compiled, outcome.hit_rate, outcome.update.stats,
+                                    outcome.update.iteration_done))
+            if index >= budget.exclude_passes:
+                counted += passes[-1].counted_seconds
+            display.show(spp_total, counted)
+
+            # --------------------- Schedule and bookkeeping (not timed) ----------------------
+            if outcome.update.iteration_done:
+                ended = current_iteration()
+                fits = True
+                if budget.seconds is not None and guide.records() and guide.iteration_spp() is not None:
+                    next_spp, remaining = guide.iteration_spp(), budget.seconds - counted
+                    fits, estimate = next_iteration_fits(ended, next_spp, remaining)
+                if fits:
+                    close_iteration(ended)
                 else:
-                    if counted >= budget.seconds:
-                        break
-                    spp = budget.pass_spp
-                index = len(passes)
-
-                # ------------------------------ Render one pass ------------------------------
-                if counters:
-                    integrator.reset_counters()
-                start = time.perf_counter()
-                image = render_pass(scene, integrator, sensor, pass_seed(seed, index), spp)
-                images.add_pass(image, spp)
-                dr.sync_thread()
-                seconds = time.perf_counter() - start
-                compile_seconds, launched, compiled = _kernel_costs(dr.kernel_history())
-
-                # ------------------------------- Guide update -------------------------------
-                learning = bool(getattr(guide, "learns", False))
-                start = time.perf_counter()
-                guide_stats = guide.update(spp_total + spp) if guide is not None else {}
-                dr.sync_thread()
-                update_seconds = time.perf_counter() - start
-                dr.kernel_history()  # update kernels are timed above, not counted as render kernels
-
-                hit_rate = (integrator.hit_count[0] / max(integrator.path_count[0], 1)) if counters else float("nan")
-                spp_total += spp
-                passes.append(PassStats(index, spp, spp_total, seconds, update_seconds, compile_seconds, launched,
-                                        compiled, float(hit_rate), guide_stats))
-                if index >= budget.exclude_passes:
-                    counted += passes[-1].counted_seconds
-                display.show(spp_total, counted)
-
-                # ------------------- Schedule and bookkeeping (not timed) --------------------
-                if guide_stats.get("iteration_done"):
-                    ended = current_iteration()
-                    fits = True
-                    if budget.seconds is not None and guide.learns and guide.iteration_spp() is not None:
-                        next_spp, remaining = guide.iteration_spp(), budget.seconds - counted
-                        fits, estimate = next_iteration_fits(ended, next_spp, remaining)
-                    if fits:
-                        close_iteration(ended)
-                    else:
-                        # The iteration that just ended becomes the final one: the frozen guide (refined with
-                        # its data) renders the rest of the budget into its image, so no sample is discarded.
-                        guide.stop_training()
-                        training_stopped = {
-                            "spp": spp_total, "seconds": counted, "iteration": ended.index,
-                            "reason": "seconds budget: the next iteration would not fit",
-                            "next_iteration_spp": next_spp,
-                            "next_iteration_seconds_estimate": estimate, "remaining_seconds": remaining}
-                if learning and not getattr(guide, "learns", False) and training_stopped is None:
-                    training_stopped = {"spp": spp_total, "seconds": counted,
-                                        "reason": "the guide's schedule: its final iteration records nothing"}
-                if on_pass is not None:
-                    on_pass(passes[-1], image.numpy()[..., :3].astype(np.float64))
-                if snapshot is not None and is_snapshot_spp(spp_total, budget.pass_spp):
-                    take_snapshot()
-                dr.kernel_history()  # whatever the bookkeeping launched is no part of the next pass
+                    # The iteration that just ended becomes the final one: the frozen guide (refined with its
+                    # data) renders the rest of the budget into its image, so no sample is discarded.
+                    guide.stop_training()
+                    training_stopped = {
+                        "spp": spp_total, "seconds": counted, "iteration": ended.index,
+                        "reason": "seconds budget: the next iteration would not fit",
+                        "next_iteration_spp": next_spp,
+                        "next_iteration_seconds_estimate": estimate, "remaining_seconds": remaining}
+            if recorded and not guide.records() and training_stopped is None:
+                training_stopped = {"spp": spp_total, "seconds": counted,
+                                    "reason": "the guide's schedule: its final iteration records nothing"}
+            if on_pass is not None:
+                on_pass(passes[-1], outcome.image.numpy()[..., :3].astype(np.float64))
+            if snapshot is not None and is_snapshot_spp(spp_total, budget.pass_spp):
+                take_snapshot()
         if images.passes:
             close_iteration(current_iteration())   # the final iteration: the rest of the budget after the last boundary
         if snapshot is not None and passes and snapshot_spp != spp_total:

@@ -710,7 +710,7 @@ def grid_table_updates() -> dict:
                 hostile, expected = _hostile_grid(method, kind, min_exploration)
                 where = f"{method}, min_exploration={min_exploration}, {kind}"
                 for spp_done in (8, 1000):       # first update, and a late one with a small ε
-                    stats = hostile.update(spp_done)
+                    stats = hostile.update(spp_done).stats
                     expected.update(spp_done)
                     problems = record_violations(hostile.record_table)
                     check(not problems, f"{where}, {spp_done} spp: {_first(problems)}")
@@ -824,7 +824,7 @@ def sdtree_table_updates() -> dict:
         for kind in HOSTILE_ENTRIES:
             hostile, expected, dropped = _hostile_tree(method, kind)
             spp_done = getattr(hostile, "iteration_end_spp", 8)    # the SD-tree refines at an iteration's end
-            stats, _ = hostile.update(spp_done), expected.update(spp_done)
+            stats, _ = hostile.update(spp_done).stats, expected.update(spp_done)
             where = f"{method}, {kind}"
             problems = forest_violations(hostile._sampling)
             check(not problems, f"{where}: {_first(problems)}")
@@ -1017,7 +1017,7 @@ def rejection_worst_acceptance() -> dict:
         sampler.seed(1, size)
         si, bsdf = diffuse_vertex(normal, size)
         bs, weight = guide.sample(None, sampler, si, bsdf, mi.BSDFContext(), dr.full(mi.Bool, True, size))
-        stats = guide.update(spp_done=10_000)          # reads (and resets) the sampler's counters
+        stats = guide.update(spp_done=10_000).stats        # reads (and resets) the sampler's counters
         label = f"{method}, spike {where}"
         problems = sample_violations(si, bs, weight)
         check(not problems, f"{label}: {_first(problems)}")
@@ -1204,7 +1204,7 @@ def grid_learning_targets() -> dict:
         recorded = counts.reshape(-1, B)[cell["hostile"]].sum()
         check(recorded == hostile.records(), f"{rule}: hostile paths recorded {recorded} targets, expected "
                                              f"{hostile.records()}")
-        stats = guide.update(spp_done=8)
+        stats = guide.update(spp_done=8).stats
         problems = record_violations(record)
         check(not problems, f"{rule}: {_first(problems)}")
         figures[rule] = {"dropped_entries": stats["dropped_entries"], "clamped_entries": stats["clamped_entries"]}
@@ -1225,7 +1225,7 @@ def sdtree_learning_targets() -> dict:
         recorded_vertices = paths.records()     # every vertex that continues has pdf > 0
         check(counts.sum() == recorded_vertices,
               f"{method}: {counts.sum()} vertices recorded, expected {recorded_vertices}")
-        stats = guide.update(getattr(guide, "iteration_end_spp", 8))
+        stats = guide.update(getattr(guide, "iteration_end_spp", 8)).stats
         problems = forest_violations(guide._sampling)
         check(not problems, f"{method}: {_first(problems)}")
         figures[method] = {"dropped_entries": stats.get("dropped_entries")}

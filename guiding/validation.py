@@ -10,7 +10,7 @@ import numpy as np
 import mitsuba as mi
 
 from .guides import RULES, SAMPLERS
-from .render import pass_seed, render_pass
+from .driver import PassDriver, pass_seed
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -25,15 +25,12 @@ def pass_means(scene: mi.Scene, integrator, passes: int, spp: int, seed: int = 0
     A guide attached to the integrator is prepared and updated between passes, as the progressive renderer does:
     every pass is an unbiased estimate given the tables the previous passes built.
     """
-    guide = getattr(integrator, "guide", None)
-    if guide is not None:
-        guide.prepare(scene)
+    driver = PassDriver(scene, integrator)
+    driver.prepare()
     means = []
     for index in range(passes):
-        image = render_pass(scene, integrator, 0, pass_seed(seed, index), spp)
+        image = driver.run(pass_seed(seed, index), spp).image
         means.append(np.asarray(image, dtype=np.float64)[..., :3].mean(axis=(0, 1)))
-        if guide is not None:
-            guide.update((index + 1) * spp)
     return np.array(means)
 
 

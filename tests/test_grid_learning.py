@@ -129,7 +129,7 @@ def test_guiding_starts_at_the_second_pass(cornell, method):
     """Pass 0 samples the BSDF only; pass 1 already guides (the hemisphere samplers' memo covers pass 0's pairs)."""
     from guiding.integrator import GuidedPathIntegrator
     from guiding.methods import make_guide
-    from guiding.render import render_pass
+    from guiding.driver import render_pass
 
     guide = make_guide(method)
     integrator = GuidedPathIntegrator(guide=guide)
@@ -137,5 +137,5 @@ def test_guiding_starts_at_the_second_pass(cornell, method):
     guided = []
     for index in range(2):
         render_pass(cornell, integrator, 0, index, 4)
-        guided.append(guide.update(4 * (index + 1))["guided_samples"])
+        guided.append(guide.update(4 * (index + 1)).stats["guided_samples"])
     assert guided[0] == 0 and guided[1] > 0, guided

@@ -9,7 +9,8 @@ import pytest
 from guiding.errors import GuidingError
 from guiding.imageio import read_exr
 from guiding.integrator import GuidedPathIntegrator
-from guiding.render import (Budget, combine_iterations, is_snapshot_spp, iteration_variance, pass_seed, render)
+from guiding.driver import pass_seed
+from guiding.render import Budget, combine_iterations, is_snapshot_spp, iteration_variance, render
 
 
 def test_spp_budget_is_exact(cornell):
@@ -75,19 +76,24 @@ class FakeClock:
     def __init__(self, monkeypatch, cost_per_spp: float):
         import types
 
-        import guiding.render as render_module
+        import guiding.driver as driver_module
 
         self.now = 0.0
-        real_pass, real_costs = render_module.render_pass, render_module._kernel_costs
+        real_pass, real_costs = driver_module.render_pass, driver_module.KernelCosts.from_history
 
         def timed_pass(scene, integrator, sensor, seed, spp):
             image = real_pass(scene, integrator, sensor, seed, spp)
             self.now += cost_per_spp * spp
             return image
 
-        monkeypatch.setattr(render_module, "render_pass", timed_pass)
-        monkeypatch.setattr(render_module, "time", types.SimpleNamespace(perf_counter=lambda: self.now))
-        monkeypatch.setattr(render_module, "_kernel_costs", lambda history: (0.0, *real_costs(history)[1:]))
+        def costs_without_compilation(history):
+            costs = real_costs(history)
+            costs.compile_seconds = 0.0
+            return costs
+
+        monkeypatch.setattr(driver_module, "render_pass", timed_pass)
+        monkeypatch.setattr(driver_module, "time", types.SimpleNamespace(perf_counter=lambda: self.now))
+        monkeypatch.setattr(driver_module.KernelCosts, "from_history", staticmethod(costs_without_compilation))
 
 
 def test_snapshots_show_the_running_mean_and_cost_no_budget(cornell, monkeypatch):

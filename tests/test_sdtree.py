@@ -436,7 +436,7 @@ def test_progressive_render_statistics_and_one_kernel(cornell):
     result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128, pass_spp=8), seed=3)
     stats = [p.guide for p in result.passes]
     # The renderer hands the guide its 128-spp budget: iterations (0, 8), (8, 24), (24, 56) and a final (56, 128).
-    assert [s["iteration_done"] for s in stats] == [True, False, True, False, False, False, True] + [False] * 9
+    assert [p.iteration_done for p in result.passes] == [True, False, True, False, False, False, True] + [False] * 9
     assert result.spp == 128 and result.spp_in_image == 72    # the image is the final iteration alone
     for key in ("stree_leaves", "dtree_nodes_mean", "dtree_nodes_max", "memory_bytes", "refine_seconds"):
         assert all(key in s for s in stats), key
@@ -454,10 +454,10 @@ def test_budget_makes_the_last_iteration_run_to_the_end_without_learning(cornell
     assert guide.iteration_bounds() == [(0, 8), (8, 24), (24, 64)]
     result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=64, pass_spp=8), seed=3)
     stats = [p.guide for p in result.passes]
-    assert [s["iteration_done"] for s in stats] == [True, False, True] + [False] * 5
+    assert [p.iteration_done for p in result.passes] == [True, False, True] + [False] * 5
     assert [s["final_iteration"] for s in stats] == [False] * 2 + [True] * 6
     # The final iteration (passes after 24 spp: what a renderer keeps for Müller's final image) records nothing.
-    assert guide.iteration_start_spp == 24 and guide.iteration_end_spp == 64 and not guide.learns
+    assert guide.iteration_start_spp == 24 and guide.iteration_end_spp == 64 and not guide.records()
     assert all(s["splat_seconds"] == 0 for s in stats[3:])
 
 
@@ -476,7 +476,9 @@ def test_iterations_in_the_render_result(cornell):
         assert it.seconds == pytest.approx(sum(p.counted_seconds for p in mine))
         assert (it.variance is None) == (it.passes < 2)
     for it, end in zip(its[:3], (8, 24, 56)):   # training iterations: the refinement they ended with
-        assert it.guide["iteration_done"] and it.guide["refine_seconds"] > 0 and it.guide["iteration_start_spp"] == end
+        closing = next(p for p in result.passes if p.spp_total == end)
+        assert closing.iteration_done and it.guide == closing.guide
+        assert it.guide["refine_seconds"] > 0 and it.guide["iteration_start_spp"] == end
         for key in ("stree_leaves", "stree_max_depth", "dtree_nodes_total", "dtree_nodes_mean", "dtree_nodes_max",
                     "memory_bytes", "vertices_recorded"):
             assert key in it.guide, key
@@ -506,13 +508,13 @@ def test_seconds_budget_stops_training_when_the_next_iteration_would_not_fit(cor
     assert result.training_stopped["spp"] == stop_spp
     assert result.training_stopped["seconds"] == pytest.approx(stop_spp * 1e-3)
     assert result.training_stopped["next_iteration_spp"] == stop_spp + 8
-    assert result.spp == final_spp and not guide.learns
+    assert result.spp == final_spp and not guide.records()
     # The iteration that ended at the stop runs to the end with the frozen guide: one image, nothing discarded.
     last = result.iterations[-1]
     assert (last.spp_start, last.spp_end) == ((stop_spp - 8) // 2, final_spp)
     assert result.spp_in_image == last.spp and last.weight == 1
     frozen = [p for p in result.passes if p.spp_total > stop_spp]
-    assert frozen and all(p.guide["splat_seconds"] == 0 and not p.guide["iteration_done"] for p in frozen)
+    assert frozen and all(p.guide["splat_seconds"] == 0 and not p.iteration_done for p in frozen)
     assert {p.guide["stree_leaves"] for p in frozen} == {result.passes[stop_spp // 8 - 1].guide["stree_leaves"]}
 
 
@@ -527,7 +529,7 @@ def test_seconds_budget_training_decisions_match_the_measured_times(cornell):
     counted, start, stop = 0.0, 0, None
     for i, p in enumerate(result.passes):
         counted += p.counted_seconds
-        if p.guide["iteration_done"]:
+        if p.iteration_done:
             ended = result.passes[start:i + 1]
             per_spp = sum(q.counted_seconds for q in ended) / sum(q.spp for q in ended)
             next_spp = 8 * 2 ** (p.guide["iteration"] + 1)
@@ -536,10 +538,10 @@ def test_seconds_budget_training_decisions_match_the_measured_times(cornell):
                 break
             start = i + 1
     if stop is None:   # every iteration was let start; the budget then ran out inside the last one
-        assert result.training_stopped is None and guide.learns
+        assert result.training_stopped is None and guide.records()
     else:              # the iteration that ended there ran to the end with the frozen guide
-        assert result.training_stopped["spp"] == result.passes[stop].spp_total and not guide.learns
-        assert all(not p.guide["iteration_done"] for p in result.passes[stop + 1:])
+        assert result.training_stopped["spp"] == result.passes[stop].spp_total and not guide.records()
+        assert all(not p.iteration_done for p in result.passes[stop + 1:])
     first = result.passes[start]
     assert result.iterations[-1].spp_start == first.spp_total - first.spp
     assert result.spp_in_image == result.spp - result.iterations[-1].spp_start

@@ -17,7 +17,7 @@ def default_proposal(sampler: str) -> str:
     return "policy" if sampler == "hemi_rej_plus" else "uniform"
 
 
-from .base import Guide, NoPathState  # noqa: E402
+from .base import Guide, NoPathState, UpdateResult  # noqa: E402
 from .bsdf import BSDFGuide
 
-__all__ = ["Guide", "NoPathState", "BSDFGuide", "RULES", "SAMPLERS", "PROPOSALS", "default_proposal"]
+__all__ = ["Guide", "NoPathState", "UpdateResult", "BSDFGuide", "RULES", "SAMPLERS", "PROPOSALS", "default_proposal"]

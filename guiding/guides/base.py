@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import mitsuba as mi
 
@@ -14,12 +14,23 @@ class NoPathState:
     DRJIT_STRUCT = {}
 
 
+@dataclass
+class UpdateResult:
+    """What :meth:`Guide.update` reports about the pass it learned from."""
+
+    #: Per-pass statistics for ``stats.json`` and the benchmark (counters, timings, table sizes).
+    stats: dict = field(default_factory=dict)
+    #: The pass ended one of the guide's iterations: the distributions change now, and a renderer that keeps only
+    #: the last iteration starts a new image.
+    iteration_done: bool = False
+
+
 class Guide:
     """Base class of all guides; the defaults describe plain BSDF sampling that learns nothing.
 
     Host side, in this order:
       ``prepare(scene)`` once before the first pass; ``update(spp_done)`` after each pass, once the pass's
-      kernel has run; ``stats()`` at any time.
+      kernel has run (an :class:`UpdateResult`); ``stats()`` at any time; ``records()`` before each pass.
     Device side, traced into the path loop:
       ``new_paths(size, max_depth)`` builds the per-path state carried through the loop;
       ``sample(...)`` draws the next direction;
@@ -29,24 +40,27 @@ class Guide:
 
     #: Short method name, as used on the command line and in tables.
     name = "guide"
-    #: Whether ``record`` / ``finish_paths`` do anything; the path loop skips them otherwise.
-    learns = False
 
     # ---------------------------------------------------------------- host side
     def prepare(self, scene: mi.Scene) -> None:
         """Allocate tables for ``scene`` before the first pass."""
 
-    def update(self, spp_done: int) -> dict:
-        """Rebuild the sampling distributions from what the last pass recorded; returns per-pass statistics."""
-        return {}
+    def update(self, spp_done: int) -> UpdateResult:
+        """Rebuild the sampling distributions from what the last pass recorded (``spp_done`` spp so far)."""
+        return UpdateResult()
+
+    def records(self) -> bool:
+        """Whether the next pass records what its paths see (``record`` / ``finish_paths``); the path loop is
+        traced without them otherwise. A scheduled guide stops recording in its final iteration."""
+        return False
 
     def stats(self) -> dict:
         """Memory and configuration figures for ``stats.json``."""
         return {}
 
     # ----------------------------------------------------------- schedule (host side)
-    # A guide whose learning runs in iterations (the SD-tree) ends one by reporting ``iteration_done`` in the
-    # statistics of ``update``; the renderer then asks ``iteration_spp`` whether the next fits a seconds budget and
+    # A guide whose learning runs in iterations (the SD-tree) ends one by setting ``UpdateResult.iteration_done``;
+    # the renderer then asks ``iteration_spp`` whether the next fits a seconds budget and
     # calls ``stop_training`` when it does not. Guides without iterations keep these defaults and are never asked.
     def set_budget(self, spp: int | None) -> None:
         """The render's spp budget (None under a seconds budget), told once before the first pass."""

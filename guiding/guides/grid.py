@@ -41,7 +41,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import PROPOSALS, RULES, SAMPLERS, default_proposal
-from .base import Guide
+from .base import Guide, UpdateResult
 from .grid_record import MIN_EXPLORATION, RadianceRecord, table_needs
 
 #: Least BSDF share of the rejection samplers (module docstring): it bounds hemi_rej's weight by 10·ρ (measured at
@@ -124,7 +124,6 @@ class GridGuide(Guide):
       name: the method name shown in tables.
     """
 
-    learns = True
 
     def __init__(self, spatial_resolution: int = 8, directional_resolution: int = 16, rule: str = "sarsa",
                  sampler: str = "hemi_rej_plus", normal_resolution: int = 5, bsdf_fraction: float = 0.5,
@@ -158,13 +157,16 @@ class GridGuide(Guide):
     def prepare(self, scene: mi.Scene) -> None:
         self.record_table.set_bounds(scene.bbox())
 
-    def update(self, spp_done: int) -> dict:
+    def update(self, spp_done: int) -> UpdateResult:
         stats = self._read_counters()
         stats["memo_pairs"] = self.record_table.update(spp_done)
         stats.update(self.record_table.sanitised)   # bad accumulator entries dropped, Q clamped (grid_record)
         self.trained = True
         self._reset_counters()
-        return stats
+        return UpdateResult(stats)
+
+    def records(self) -> bool:
+        return True
 
     def stats(self) -> dict:
         table = self.record_table

@@ -52,7 +52,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..directions import safe_normalize
-from .base import Guide, NoPathState
+from .base import Guide, NoPathState, UpdateResult
 
 #: Largest float32 below one: samples and coordinates are clamped to [0, ONE_MINUS_EPS].
 ONE_MINUS_EPS = float(np.nextafter(np.float32(1), np.float32(0)))
@@ -572,8 +572,6 @@ class _TreeGuide(Guide):
     ``self._recording`` (:class:`DeviceForest`), and their update rule.
     """
 
-    learns = True
-
     def __init__(self, bsdf_fraction: float = 0.5, rho: float = 0.01, dtree_max_depth: int = 20,
                  max_nodes: int | None = None):
         if not 0 <= bsdf_fraction < 1:
@@ -590,12 +588,15 @@ class _TreeGuide(Guide):
         self._count_acc = None
         self.sanitised = {"dropped_entries": 0}          # bad accumulator entries of the last update (_pull)
 
+    def records(self) -> bool:
+        return True
+
     # -------------------------------------------------------------------------------------- device side
     def _locate(self, p, active):
         raise NotImplementedError
 
     def new_paths(self, size: int, max_depth: int):
-        if not self.learns:
+        if not self.records():
             return NoPathState()
         log = _PassLog(size, max_depth)
         self._logs.append(log)
@@ -759,6 +760,7 @@ class SDTreeGuide(_TreeGuide):
         self.c = float(c)
         self.base_spp = int(base_spp)
         self.budget_spp = budget_spp
+        self._recording_on = True
 
     # ------------------------------------------------------------------------------------ schedule
     def set_budget(self, spp: int | None) -> None:
@@ -790,7 +792,7 @@ class SDTreeGuide(_TreeGuide):
         refinement and no more recording (the next pass traces a kernel without the recording code). The
         current iteration becomes the final one and runs to the end of the budget, so it has no end spp."""
         self.is_final_iteration = True
-        self.learns = False
+        self._recording_on = False
         self._logs.clear()
         self.iteration_end_spp = None
 
@@ -806,7 +808,7 @@ class SDTreeGuide(_TreeGuide):
         self._recording = DeviceForest(self._recording_host)
         self._reset_accumulators()
         self._logs.clear()
-        self.learns = True
+        self._recording_on = True
         self.iteration = 0
         self._start_iteration(0)
         self._last_refine = {}
@@ -814,23 +816,27 @@ class SDTreeGuide(_TreeGuide):
     def _locate(self, p, active):
         return stree_locate(self._s_device, p, active)
 
-    def update(self, spp_done: int) -> dict:
+    def records(self) -> bool:
+        return self._recording_on
+
+    def update(self, spp_done: int) -> UpdateResult:
         """Splat the pass's records; at the end of an iteration, refine. ``iteration`` in the returned statistics
         is the iteration the pass belonged to; ``iteration_done`` marks the pass that ended it (the distributions
         change after it; a renderer keeping only the last iteration restarts its accumulation there)."""
         pass_iteration = self.iteration
-        splat_seconds = self._splat_logs() if self.learns else 0.0
-        stats = {"iteration_done": False, "splat_seconds": splat_seconds, "refine_seconds": 0.0}
-        if self.learns and not self.is_final_iteration and spp_done >= self.iteration_end_spp:
+        recorded = self.records()
+        splat_seconds = self._splat_logs() if recorded else 0.0
+        stats = {"splat_seconds": splat_seconds, "refine_seconds": 0.0}
+        iteration_done = recorded and not self.is_final_iteration and spp_done >= self.iteration_end_spp
+        if iteration_done:
             stats.update(self._refine())
-            stats["iteration_done"] = True
             self.iteration += 1
             self._start_iteration(spp_done)
             if self.is_final_iteration and self.budget_spp is not None:
-                self.learns = False   # Müller: the last iteration does not record
+                self._recording_on = False   # Müller: the last iteration does not record
         stats.update(self._structure_stats())
         stats["iteration"] = pass_iteration
-        return stats
+        return UpdateResult(stats, iteration_done)
 
     def _refine(self) -> dict:
         start = time.perf_counter()
@@ -907,7 +913,7 @@ class QuadtreeGridGuide(_TreeGuide):
         cell = mi.Vector3u(dr.clip(mi.Vector3i(dr.floor(rel * S)), 0, S - 1))
         return (cell.z * S + cell.y) * S + cell.x
 
-    def update(self, spp_done: int) -> dict:
+    def update(self, spp_done: int) -> UpdateResult:
         splat_seconds = self._splat_logs()
         start = time.perf_counter()
         energy, _ = self._pull()
@@ -921,7 +927,7 @@ class QuadtreeGridGuide(_TreeGuide):
         stats = {"splat_seconds": splat_seconds, "refine_seconds": time.perf_counter() - start,
                  "refine_host_seconds": host_seconds, "energy_recorded": float(energy.sum()), **self.sanitised}
         stats.update(self._structure_stats())
-        return stats
+        return UpdateResult(stats)
 
     def _structure_stats(self) -> dict:
         stats = {"grid_cells": self.S ** 3, "memory_bytes": self._memory_bytes()}
