@@ -25,14 +25,10 @@ from __future__ import annotations
 
 import argparse
 import copy
-import html
 import itertools
 import json
 import os
-import platform
 import shlex
-import socket
-import subprocess
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -485,144 +481,6 @@ def plan_or_exit(config: dict, schema: str | os.PathLike = SCHEMA, check: bool =
     return result
 
 
-# ------------------------------------------------------------------------------------------------ evaluate
-
-def render_seconds_at(per_pass: list[dict], spp: int) -> float:
-    """Render + update time up to ``spp`` samples per pixel, compilation excluded (the curves' time axis)."""
-    total = 0.0
-    for p in per_pass:
-        if p["spp_total"] > spp:
-            break
-        total += p["seconds"] + p["update_seconds"] - p["compile_seconds"]
-    return total
-
-
-#: What each point of an error-vs-time curve keeps of the metrics.
-CURVE_METRICS = ("mae", "mae_hdr", "relmse", "nonfinite_pixels")
-
-
-def evaluate_run(image: str, stats: str, reference: str, out: str, run: dict | None = None) -> dict:
-    """metrics.json of one render: the run, its metrics against the reference, its stats and provenance, and
-    an error-vs-time curve.
-
-    The curve has a point for every snapshot listed in stats.json (``python -m guiding render --snapshots``;
-    stats.json is written last, so files of an interrupted render are never listed) and one for the final image
-    (which replaces the snapshot the renderer takes of it). Each point: spp, ``render_seconds`` (render + update
-    seconds up to that pass, compilation excluded: the figures' time axis), the seconds counted against the
-    budget when the renderer recorded them, and the metrics.
-    """
-    from . import imageio
-    from .metrics import evaluate
-
-    stats_data = json.loads(Path(stats).read_text())
-    ref = imageio.read_exr(reference)
-    metrics = evaluate(imageio.read_exr(image), ref)
-    per_pass = stats_data.get("per_pass", [])
-    final_spp = stats_data["spp"]
-    curve = []
-    for snap in stats_data.get("snapshots", []):
-        if snap["spp"] == final_spp:
-            continue  # the final image itself
-        if Path(snap["file"]).name != snap["file"]:
-            raise GuidingError(f"{stats}: snapshot file {snap['file']!r} is not a file name in the render folder")
-        snap_metrics = evaluate(imageio.read_exr(Path(image).parent / snap["file"]), ref)
-        curve.append({"spp": snap["spp"], "render_seconds": render_seconds_at(per_pass, snap["spp"]),
-                      "counted_seconds": snap.get("seconds"),
-                      **{k: snap_metrics[k] for k in CURVE_METRICS}})
-    curve.append({"spp": final_spp, "render_seconds": render_seconds_at(per_pass, final_spp),
-                  "counted_seconds": stats_data.get("budget_seconds_counted"),
-                  **{k: metrics[k] for k in CURVE_METRICS}})
-    keep = ("scene", "method", "seed", "scale", "resolution", "spp", "seconds", "compile_seconds",
-            "budget_seconds_counted", "passes", "hit_rate", "max_depth", "spp_in_image", "combine",
-            "training_stopped")
-    result = {**(run or {}), **metrics, "render_seconds": render_seconds_at(per_pass, stats_data["spp"]),
-              "stats": {k: stats_data.get(k) for k in keep}, "provenance": stats_data.get("provenance", {}),
-              "curve": sorted(curve, key=lambda c: c["spp"])}
-    _write_text_atomic(out, json.dumps(result, indent=1))
-    return result
-
-
-def _write_text_atomic(path: str | os.PathLike, text: str) -> None:
-    from .imageio import atomic_path
-
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        Path(tmp).write_text(text)
-
-
-# ---------------------------------------------------------------------------------------------- provenance
-
-def _command_output(args: list[str], cwd: str | os.PathLike = PROJECT_ROOT) -> str | None:
-    try:
-        result = subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=20)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return result.stdout.strip() if result.returncode == 0 else None
-
-
-def _versions() -> dict:
-    from importlib import metadata
-
-    versions = {"python": platform.python_version()}
-    for package in ("guiding", "mitsuba", "drjit", "numpy", "snakemake", "OpenEXR", "matplotlib", "pandas"):
-        try:
-            versions[package] = metadata.version(package)
-        except metadata.PackageNotFoundError:
-            versions[package] = None
-    return versions
-
-
-def provenance(config: dict, stats_files: list[str], configfiles: list[str] = ()) -> dict:
-    """Where the results came from: configuration, code version, software, this machine, and every render's
-    machine and device (from its stats.json)."""
-    from collections import Counter
-
-    devices = Counter()
-    for path in stats_files:
-        try:
-            prov = json.loads(Path(path).read_text()).get("provenance", {})
-        except (OSError, ValueError):
-            continue
-        experiment = Path(path).parts[-6] if "renders" in Path(path).parts else "reference"
-        devices[(experiment, prov.get("host"), prov.get("device"), prov.get("variant"), prov.get("threads"))] += 1
-    commit = _command_output(["git", "rev-parse", "HEAD"])
-    dirty = _command_output(["git", "status", "--porcelain", "--untracked-files=no"])
-    return {
-        "config": config, "configfiles": [str(p) for p in configfiles],
-        "git": {"commit": commit, "dirty": bool(dirty) if dirty is not None else None},
-        "versions": _versions(),
-        "machine": {"host": socket.gethostname(), "platform": platform.platform(), "cpus": os.cpu_count(),
-                    "gpu": _command_output(["nvidia-smi", "--query-gpu=name,driver_version", "--format=csv,noheader"])},
-        "renders": [{"experiment": e, "host": h, "device": d, "variant": v, "threads": t, "jobs": n}
-                    for (e, h, d, v, t), n in sorted(devices.items(), key=lambda item: tuple(map(str, item[0])))],
-    }
-
-
-def provenance_html(prov: dict) -> str:
-    import yaml
-
-    def table(rows: list[dict]) -> str:
-        if not rows:
-            return "<p>none</p>"
-        head = "".join(f"<th>{html.escape(str(k))}</th>" for k in rows[0])
-        body = "".join("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in row.values()) + "</tr>"
-                       for row in rows)
-        return f"<table border='1' cellspacing='0' cellpadding='3'><tr>{head}</tr>{body}</table>"
-
-    git = prov["git"]
-    return "\n".join([
-        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>Provenance</title></head><body>",
-        "<h1>Provenance</h1>",
-        f"<p>Code: commit <code>{html.escape(str(git['commit']))}</code>"
-        f"{' with uncommitted changes' if git['dirty'] else ''}.</p>",
-        "<h2>Machines and devices of the renders</h2>", table(prov["renders"]),
-        "<h2>Software</h2>", table([prov["versions"]]),
-        "<h2>Machine that ran the workflow</h2>", table([prov["machine"]]),
-        f"<h2>Configuration</h2><p>files: {html.escape(', '.join(prov['configfiles']) or '(defaults)')}</p>",
-        f"<pre>{html.escape(yaml.safe_dump(prov['config'], sort_keys=False))}</pre>",
-        "</body></html>"])
-
-
 # ----------------------------------------------------------------------------------------------------- CLI
 
 def _load_plan(configfile: str | None) -> Plan:
@@ -659,6 +517,10 @@ def main(argv: list[str] | None = None) -> int:
     prov.add_argument("stats", nargs="*")
 
     args = parser.parse_args(argv)
+    from .evaluation import evaluate_run
+    from .imageio import write_text_atomic
+    from .provenance import provenance, provenance_html
+
     try:
         if args.command == "path":
             the_plan = _load_plan(args.configfile)
@@ -679,8 +541,8 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "provenance":
             configfiles = [p for p in args.configfiles.split(os.pathsep) if p]
             data = provenance(json.loads(args.config), args.stats, configfiles)
-            _write_text_atomic(args.out_json, json.dumps(data, indent=1))
-            _write_text_atomic(args.out_html, provenance_html(data))
+            write_text_atomic(args.out_json, json.dumps(data, indent=1))
+            write_text_atomic(args.out_html, provenance_html(data))
     except GuidingError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

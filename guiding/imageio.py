@@ -100,3 +100,10 @@ def write_png(path: str | os.PathLike, image: np.ndarray, exposure: float = 1.0)
 
     with atomic_path(path) as tmp:
         Image.fromarray(to_srgb8(image, exposure)).save(tmp, format="PNG")
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` (its folder made if needed) all at once: a reader sees the old file or the new."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text)

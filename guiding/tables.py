@@ -89,7 +89,9 @@ def runs_frame(rows: list[dict]) -> pd.DataFrame:
     records = []
     for row in rows:
         stats, prov = row.get("stats", {}), row.get("provenance", {})
-        record = {**{k: v for k, v in row.items() if k not in ("stats", "provenance", "curve")},
+        record = {**{k: v for k, v in row.items() if k not in ("stats", "provenance", "curve", "guide")},
+                  # The resolution a render reports is the one it ran at, whatever the method name said.
+                  **{k: row["guide"][k] for k in ("S", "D") if k in row.get("guide", {})},
                   "resolution": "x".join(map(str, stats.get("resolution") or [])), "spp": stats.get("spp"),
                   "seconds": stats.get("seconds"), "compile_seconds": stats.get("compile_seconds"),
                   "budget_seconds_counted": stats.get("budget_seconds_counted"), "hit_rate": stats.get("hit_rate"),
@@ -297,12 +299,12 @@ def build(spec: dict, rows: list[dict]) -> tuple[pd.DataFrame, str, pd.DataFrame
 
 
 def write(spec: dict, metrics_files: list[str], csv: str, md: str, runs_csv: str) -> None:
-    from .harness import _write_text_atomic
+    from .imageio import write_text_atomic
 
     cells, text, runs = build(spec, load_metrics(metrics_files))
-    _write_text_atomic(csv, cells.to_csv(index=False, float_format="%.6g"))
-    _write_text_atomic(md, text)
-    _write_text_atomic(runs_csv, runs.to_csv(index=False, float_format="%.6g"))
+    write_text_atomic(csv, cells.to_csv(index=False, float_format="%.6g"))
+    write_text_atomic(md, text)
+    write_text_atomic(runs_csv, runs.to_csv(index=False, float_format="%.6g"))
 
 
 def main(argv: list[str] | None = None) -> int:

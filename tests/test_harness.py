@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from guiding import figures, harness, imageio, tables
+from guiding import evaluation, figures, harness, imageio, tables
 from guiding.errors import GuidingError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -172,6 +172,18 @@ def test_table1_layout_mean_over_seeds_and_paper_numbers():
     assert "`box`: CPU: test" in text
 
 
+def test_table1_takes_the_resolution_each_render_reports():
+    """S and D come from the guide's own statistics in the render's stats.json, not from the method name."""
+    config = harness.load_config(FULL_CONFIG)
+    config["experiments"]["table1"].update(S=[8, 4], D=[16])
+    spec = _spec(config, "table1")
+    rows = [_row("table1", "veach-ajar", "ours-S8-D16", 0, 0.03, S=8, D=16),
+            {**_row("table1", "veach-ajar", "ours-S4-D16", 0, 0.05, S=8, D=16), "guide": {"S": 4, "D": 16}}]
+    cells, text, runs = tables.build(spec, rows)
+    assert sorted(zip(cells.S, cells.mae)) == [(4, 0.05), (8, 0.03)]
+    assert "| **4** | 0.05 /" in text
+
+
 def test_table2_layout_with_extra_methods_and_a_nonfinite_run():
     config = harness.load_config(FULL_CONFIG)
     config["experiments"]["table2"].update(rules=["mc", "sarsa"], samplers=["sphere_inv", "hemi_rej_plus"])
@@ -294,7 +306,7 @@ def test_evaluate_reads_snapshots_listed_in_stats(tmp_path):
     stats = {"spp": 16, "budget_seconds_counted": 0.17, "per_pass": passes, "provenance": {"host": "h"},
              "snapshots": snapshots}
     (tmp_path / "stats.json").write_text(json.dumps(stats))
-    result = harness.evaluate_run(str(tmp_path / "image.exr"), str(tmp_path / "stats.json"),
+    result = evaluation.evaluate_run(str(tmp_path / "image.exr"), str(tmp_path / "stats.json"),
                                   str(tmp_path / "ref.exr"), str(tmp_path / "metrics.json"), {"method": "m"})
     assert [c["spp"] for c in result["curve"]] == [8, 16]
     assert result["curve"][0]["mae"] > result["curve"][1]["mae"] == result["mae"] > 0
@@ -306,7 +318,7 @@ def test_evaluate_reads_snapshots_listed_in_stats(tmp_path):
     stats["snapshots"][0]["file"] = "../image_snap00008.exr"
     (tmp_path / "stats.json").write_text(json.dumps(stats))
     with pytest.raises(GuidingError, match="not a file name"):
-        harness.evaluate_run(str(tmp_path / "image.exr"), str(tmp_path / "stats.json"), str(tmp_path / "ref.exr"),
+        evaluation.evaluate_run(str(tmp_path / "image.exr"), str(tmp_path / "stats.json"), str(tmp_path / "ref.exr"),
                              str(tmp_path / "metrics.json"))
 
 

@@ -1,0 +1,84 @@
+"""Where results came from: configuration, code version, software, machine and the devices of the renders."""
+
+from __future__ import annotations
+
+import html
+import json
+import os
+import platform
+import socket
+import subprocess
+from pathlib import Path
+
+from .scenes import PROJECT_ROOT
+
+
+def _command_output(args: list[str], cwd: str | os.PathLike = PROJECT_ROOT) -> str | None:
+    try:
+        result = subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=20)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return result.stdout.strip() if result.returncode == 0 else None
+
+
+def _versions() -> dict:
+    from importlib import metadata
+
+    versions = {"python": platform.python_version()}
+    for package in ("guiding", "mitsuba", "drjit", "numpy", "snakemake", "OpenEXR", "matplotlib", "pandas"):
+        try:
+            versions[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            versions[package] = None
+    return versions
+
+
+def provenance(config: dict, stats_files: list[str], configfiles: list[str] = ()) -> dict:
+    """Where the results came from: configuration, code version, software, this machine, and every render's
+    machine and device (from its stats.json)."""
+    from collections import Counter
+
+    devices = Counter()
+    for path in stats_files:
+        try:
+            prov = json.loads(Path(path).read_text()).get("provenance", {})
+        except (OSError, ValueError):
+            continue
+        experiment = Path(path).parts[-6] if "renders" in Path(path).parts else "reference"
+        devices[(experiment, prov.get("host"), prov.get("device"), prov.get("variant"), prov.get("threads"))] += 1
+    commit = _command_output(["git", "rev-parse", "HEAD"])
+    dirty = _command_output(["git", "status", "--porcelain", "--untracked-files=no"])
+    return {
+        "config": config, "configfiles": [str(p) for p in configfiles],
+        "git": {"commit": commit, "dirty": bool(dirty) if dirty is not None else None},
+        "versions": _versions(),
+        "machine": {"host": socket.gethostname(), "platform": platform.platform(), "cpus": os.cpu_count(),
+                    "gpu": _command_output(["nvidia-smi", "--query-gpu=name,driver_version", "--format=csv,noheader"])},
+        "renders": [{"experiment": e, "host": h, "device": d, "variant": v, "threads": t, "jobs": n}
+                    for (e, h, d, v, t), n in sorted(devices.items(), key=lambda item: tuple(map(str, item[0])))],
+    }
+
+
+def provenance_html(prov: dict) -> str:
+    import yaml
+
+    def table(rows: list[dict]) -> str:
+        if not rows:
+            return "<p>none</p>"
+        head = "".join(f"<th>{html.escape(str(k))}</th>" for k in rows[0])
+        body = "".join("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in row.values()) + "</tr>"
+                       for row in rows)
+        return f"<table border='1' cellspacing='0' cellpadding='3'><tr>{head}</tr>{body}</table>"
+
+    git = prov["git"]
+    return "\n".join([
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>Provenance</title></head><body>",
+        "<h1>Provenance</h1>",
+        f"<p>Code: commit <code>{html.escape(str(git['commit']))}</code>"
+        f"{' with uncommitted changes' if git['dirty'] else ''}.</p>",
+        "<h2>Machines and devices of the renders</h2>", table(prov["renders"]),
+        "<h2>Software</h2>", table([prov["versions"]]),
+        "<h2>Machine that ran the workflow</h2>", table([prov["machine"]]),
+        f"<h2>Configuration</h2><p>files: {html.escape(', '.join(prov['configfiles']) or '(defaults)')}</p>",
+        f"<pre>{html.escape(yaml.safe_dump(prov['config'], sort_keys=False))}</pre>",
+        "</body></html>"])
