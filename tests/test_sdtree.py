@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 from mitsuba.chi2 import ChiSquareTest, LineDomain, SphericalDomain
 
-from guiding.guides.sdtree import (SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest, QuadtreeGridGuide,
-                                   SDTreeGuide, STree, doubling_schedule, stree_locate)
+from guiding.guides.dtree import SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
+from guiding.guides.sdtree import QuadtreeGridGuide, SDTreeGuide
+from guiding.guides.stree import STree, doubling_schedule, stree_locate
 from guiding.integrator import GuidedPathIntegrator
 from guiding.validation import Z_LIMIT, pass_means, z_scores
 from test_render import FakeClock
