@@ -82,36 +82,6 @@ class Forest:
         return cls(np.full((n_trees, 4), -1), np.zeros((n_trees, 4)), np.ones(n_trees), np.arange(n_trees),
                    n_trees)
 
-    @classmethod
-    def from_nested(cls, trees: list) -> "Forest":
-        """Trees written as nested lists, for tests: a quadrant is a number (a leaf's energy) or a list of four
-        quadrants (a child node). ``[1, 0, [1, 1, 1, 1], 2]`` is a root whose quadrant 2 is subdivided."""
-        level = [(t, q) for t, q in enumerate(trees)]
-        child, energy, depth, tree = [], [], [], []
-        d = 1
-        while level:
-            nxt = []
-            base = len(child) + len(level)
-            for t, quads in level:
-                assert len(quads) == 4, "a node has four quadrants"
-                row_c, row_e = [], []
-                for q in quads:
-                    if isinstance(q, (list, tuple)):
-                        row_c.append(base + len(nxt))
-                        row_e.append(0.0)
-                        nxt.append((t, q))
-                    else:
-                        row_c.append(-1)
-                        row_e.append(float(q))
-                child.append(row_c)
-                energy.append(row_e)
-                depth.append(d)
-                tree.append(t)
-            level, d = nxt, d + 1
-        forest = cls(np.array(child).reshape(-1, 4), np.array(energy).reshape(-1, 4), depth, tree, len(trees))
-        forest.propagate()
-        return forest
-
     # ---------------------------------------------------------------------------------------------- queries
     @property
     def n_nodes(self) -> int:
@@ -144,30 +114,6 @@ class Forest:
         half = side[nodes] * 0.5
         corner = origin[nodes] + half[:, None] * q_off[quads]
         return (self.tree[nodes], 4 * nodes + quads, corner[:, 0], corner[:, 1], half, self.energy[nodes, quads])
-
-    def lookup_np(self, trees: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Reference lookup (NumPy, float64): leaf slot and density on the square of points ``uv`` in ``trees``."""
-        node = np.asarray(trees, dtype=np.int64).copy()
-        x = np.array(uv, dtype=np.float64)
-        pdf = np.ones(len(node))
-        slot = np.zeros(len(node), dtype=np.int64)
-        go = np.ones(len(node), dtype=bool)
-        while go.any():
-            idx = np.nonzero(go)[0]
-            x2 = x[idx] * 2
-            qx = (x2[:, 0] >= 1).astype(np.int64)
-            qy = (x2[:, 1] >= 1).astype(np.int64)
-            x[idx] = x2 - np.stack([qx, qy], axis=1)
-            q = qx + 2 * qy
-            e = self.energy[node[idx]]
-            tot = e.sum(axis=1)
-            share = np.where(tot > 0, e[np.arange(len(idx)), q] / np.where(tot > 0, tot, 1), 0.25)
-            pdf[idx] *= 4 * share
-            slot[idx] = 4 * node[idx] + q
-            nxt = self.child[node[idx], q]
-            go[idx] = nxt >= 0
-            node[idx] = np.where(nxt >= 0, nxt, node[idx])
-        return slot, pdf
 
     # -------------------------------------------------------------------------------------------- updates
     def propagate(self) -> None:

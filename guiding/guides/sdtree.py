@@ -32,7 +32,7 @@ import numpy as np
 
 from .base import Guide, NoPathState, UpdateResult
 from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
-from .stree import STree, doubling_schedule, stree_locate
+from .stree import STree, iteration_length, stree_locate
 
 # guiding/stress.py imports these from here; they live in dtree.py (until stress.py moves into tests/).
 from .dtree import dir_to_uv, uv_to_dir  # noqa: F401
@@ -278,18 +278,9 @@ class SDTreeGuide(_TreeGuide):
         """Tell the guide the total spp budget (before the first pass), so the last iteration runs to its end."""
         self.budget_spp = spp
 
-    def iteration_bounds(self) -> list[tuple[int, int]]:
-        """``[(start, end)]`` spp of the iterations of this guide's schedule (finite with a budget)."""
-        return doubling_schedule(self.base_spp, self.budget_spp)
-
     def _start_iteration(self, spp_start: int) -> None:
-        length = self.base_spp * 2 ** self.iteration
-        self.is_final_iteration = False
-        if self.budget_spp is not None:
-            remaining = self.budget_spp - spp_start
-            length = min(length, remaining)
-            if remaining - length < 2 * length:
-                length, self.is_final_iteration = remaining, True
+        length, self.is_final_iteration = iteration_length(self.base_spp, self.iteration, spp_start,
+                                                           self.budget_spp)
         self.iteration_start_spp = spp_start
         self.iteration_end_spp = spp_start + max(length, 1)
 

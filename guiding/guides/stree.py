@@ -109,18 +109,17 @@ def stree_locate(arrays: dict, p, active=True):
 # ===================================================================================================================
 #  Schedule
 # ===================================================================================================================
-def doubling_schedule(base_spp: int, budget_spp: int | None = None, iterations: int = 40) -> list[tuple[int, int]]:
-    """``[(start, end)]`` in spp of each training iteration: iteration ``k`` spans ``base_spp · 2^k`` spp. With a
-    budget, an iteration that the next one could not double is extended to the end of the budget (Müller's rule:
-    the last iteration has at least half the budget to itself)."""
-    bounds, start, k = [], 0, 0
-    while (budget_spp is None and k < iterations) or (budget_spp is not None and start < budget_spp):
-        length = base_spp * 2 ** k
-        if budget_spp is not None:
-            remaining = budget_spp - start
-            length = min(length, remaining)
-            if remaining - length < 2 * length:
-                length = remaining
-        bounds.append((start, start + length))
-        start, k = start + length, k + 1
-    return bounds
+def iteration_length(base_spp: int, k: int, start_spp: int, budget_spp: int | None = None) -> tuple[int, bool]:
+    """Length in spp of training iteration ``k``, which starts at ``start_spp``, and whether it is the last one.
+
+    Iteration ``k`` spans ``base_spp · 2^k`` spp. With a budget of ``budget_spp``, an iteration that the next one
+    could not double is extended to the end of the budget, and is the last (Müller's rule: the last iteration has
+    at least half the budget to itself); without one, no iteration is the last."""
+    length = base_spp * 2 ** k
+    if budget_spp is None:
+        return length, False
+    remaining = budget_spp - start_spp
+    length = min(length, remaining)
+    if remaining - length < 2 * length:
+        return remaining, True
+    return length, False
