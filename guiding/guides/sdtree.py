@@ -9,22 +9,21 @@ Two guides share the D-tree code (:mod:`guiding.guides.dtree`):
   energies accumulated over the whole render and the trees refreshed after every pass (the "Quadtree" column of
   Kim & Kim 2021).
 
-**Monte Carlo recording.** In the path loop, :meth:`record` writes one record per (path, vertex) into per-pass
-buffers of ``n_paths × max_depth`` entries: the emitted radiance ``Le`` (RGB), the weight ``w = f·cos/pdf``
-including Russian roulette (RGB, 0 where the path ends), and, for vertices whose sampled direction was traced and
-not delta-sampled, the leaf slot of that direction in the recording D-tree and its pdf. After the pass, a second
-kernel (started by :meth:`update`, once the render kernel has run: Dr.Jit would otherwise have to evaluate the
-buffers in the middle of the render) walks every path backwards, ``L ← Le_i + w_i·L``, and adds
-``mean_rgb(L_{i+1}) / pdf_i`` (the incident radiance along the sampled direction over its pdf) to the leaf, and
-one to the vertex count of the vertex's D-tree (S-tree leaf). The buffers take 32 bytes per (path, vertex):
-``pixels × pass_spp × max_depth × 32`` bytes per pass (314 MB at 320 × 240, 8 spp, depth 16).
+**Monte Carlo recording** (:mod:`guiding.guides.vertex_log`). In the path loop, :meth:`record` logs every
+(path, vertex) of the pass: the emitted radiance ``Le`` (RGB), the weight ``w = f·cos/pdf`` including Russian
+roulette (RGB, 0 where the path ends), and, for vertices whose sampled direction was traced and not delta-sampled,
+the leaf slot of that direction in the recording D-tree and its pdf. After the pass, a second kernel (started by
+:meth:`update`, once the render kernel has run: Dr.Jit would otherwise have to evaluate the log in the middle of
+the render) walks every path backwards, ``L ← Le_i + w_i·L``, and adds ``mean_rgb(L_{i+1}) / pdf_i`` (the incident
+radiance along the sampled direction over its pdf) to the leaf, and one to the vertex count of the vertex's D-tree
+(S-tree leaf). The log takes 32 bytes per (path, vertex): ``pixels × pass_spp × max_depth × 32`` bytes per pass
+(314 MB at 320 × 240, 8 spp, depth 16).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -33,6 +32,7 @@ import numpy as np
 from .base import Guide, NoPathState, UpdateResult
 from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
 from .stree import STree, iteration_length, stree_locate
+from .vertex_log import NO_RECORD, VertexLog, walk_backward
 
 # guiding/stress.py imports these from here; they live in dtree.py (until stress.py moves into tests/).
 from .dtree import dir_to_uv, uv_to_dir  # noqa: F401
@@ -40,40 +40,6 @@ from .dtree import dir_to_uv, uv_to_dir  # noqa: F401
 
 def _capacity(n: int) -> int:
     return 1 << max(int(n) - 1, 1).bit_length()
-
-
-_STATE_TYPES: dict = {}
-
-
-def _vertex_log_type():
-    """The per-path loop state (a Dr.Jit PyTree): path index and number of vertices logged so far."""
-    key = mi.variant()
-    if key not in _STATE_TYPES:
-        @dataclass
-        class VertexLog:
-            path: mi.UInt32 = None
-            n: mi.UInt32 = None
-            DRJIT_STRUCT = {"path": mi.UInt32, "n": mi.UInt32}
-
-        _STATE_TYPES[key] = VertexLog
-    return _STATE_TYPES[key]
-
-
-class _PassLog:
-    """Per-pass vertex records, ``n_paths × max_depth`` entries, written by the render kernel."""
-
-    def __init__(self, n_paths: int, max_depth: int):
-        size = n_paths * max_depth
-        self.n_paths, self.max_depth = n_paths, max_depth
-        self.emitted = dr.zeros(mi.Color3f, size)
-        self.weight = dr.zeros(mi.Color3f, size)
-        self.slot = dr.zeros(mi.UInt32, size)      # leaf slot + 1; 0: nothing to record at this vertex
-        self.pdf = dr.zeros(mi.Float, size)
-        self.count = dr.zeros(mi.UInt32, n_paths)
-
-    @property
-    def nbytes(self) -> int:
-        return 4 * (self.n_paths * self.max_depth * 8 + self.n_paths)
 
 
 class _TreeGuide(Guide):
@@ -91,7 +57,7 @@ class _TreeGuide(Guide):
         self.rho = float(rho)
         self.dtree_max_depth = int(dtree_max_depth)
         self.max_nodes = max_nodes
-        self._logs: list[_PassLog] = []
+        self._logs: list[VertexLog] = []                 # the passes rendered since the last update
         self._log_bytes = 0
         self._sampling: DeviceForest | None = None
         self._recording: DeviceForest | None = None
@@ -109,10 +75,10 @@ class _TreeGuide(Guide):
     def new_paths(self, size: int, max_depth: int):
         if not self.records():
             return NoPathState()
-        log = _PassLog(size, max_depth)
+        log = VertexLog(size, max_depth, with_pdf=True)
         self._logs.append(log)
         self._log_bytes = log.nbytes
-        return _vertex_log_type()(path=dr.arange(mi.UInt32, size), n=mi.UInt32(0))
+        return log.new_paths()
 
     def guided_mask(self, tree, bsdf: mi.BSDFPtr, active):
         """Lanes that mix in the D-tree: not a delta BSDF, and a D-tree that has seen energy."""
@@ -158,23 +124,16 @@ class _TreeGuide(Guide):
         return bs, weight
 
     def record(self, state, si, emitted, bs, weight, continues, active):
-        log = self._logs[-1]
-        ok = mi.Bool(active) & (state.n < log.max_depth)
-        index = state.path * log.max_depth + state.n
-        dr.scatter(log.emitted, emitted, index, ok)
-        dr.scatter(log.weight, dr.select(continues, weight, 0), index, ok)
         # The direction sampled here was traced: record it (delta directions carry no density).
-        rec = ok & continues & si.is_valid() & (bs.pdf > 0) & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-        tree = self._locate(si.p, rec)
-        slot = self._recording.slot_of_dir(tree, si.to_world(bs.wo), rec)
-        dr.scatter(log.slot, slot + 1, index, rec)
-        dr.scatter(log.pdf, bs.pdf, index, rec)
-        state.n = dr.select(ok, state.n + 1, state.n)
-        return state
+        traced = (mi.Bool(active) & continues & si.is_valid() & (bs.pdf > 0)
+                  & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
+        tree = self._locate(si.p, traced)
+        slot = self._recording.slot_of_dir(tree, si.to_world(bs.wo), traced)
+        return self._logs[-1].append(state, emitted, weight, continues, dr.select(traced, slot, NO_RECORD), active,
+                                     pdf=bs.pdf)
 
     def finish_paths(self, state) -> None:
-        log = self._logs[-1]
-        dr.scatter(log.count, state.n, state.path)
+        self._logs[-1].keep(state)
 
     # ---------------------------------------------------------------------------------------- host side
     def _reset_accumulators(self) -> None:
@@ -184,25 +143,19 @@ class _TreeGuide(Guide):
         self._count_acc = dr.zeros(mi.Float, _capacity(self._recording.n_trees))
         dr.eval(self._energy_acc, self._count_acc)
 
-    @dr.syntax
-    def _splat(self, log: _PassLog) -> None:
-        """Backward walk over one pass's vertex records: ``mean_rgb(L)/pdf`` into the recording D-tree leaves."""
-        md = log.max_depth
-        path = dr.arange(mi.UInt32, log.n_paths)
-        j = dr.gather(mi.UInt32, log.count, path)
-        L = mi.Color3f(0)
-        while j > 0:
-            j -= 1
-            index = path * md + j
-            slot = dr.gather(mi.UInt32, log.slot, index)
-            pdf = dr.gather(mi.Float, log.pdf, index)
-            rec = slot > 0
+    def _splat(self, log: VertexLog) -> None:
+        """Backward walk over one pass's vertex log: ``mean_rgb(L)/pdf`` into the recording D-tree leaves, and one
+        to the vertex count of each recorded vertex's D-tree."""
+        def visit(entry, slot, L):
+            recorded = slot != NO_RECORD
+            pdf = dr.gather(mi.Float, log.pdf, entry)
             value = (L.x + L.y + L.z) * (1.0 / 3.0) / pdf
-            dr.scatter_reduce(dr.ReduceOp.Add, self._energy_acc, value, slot - 1,
-                              rec & (value > 0) & dr.isfinite(value))
-            tree = dr.gather(mi.UInt32, self._recording.tree_of_node, (slot - 1) // 4, rec)
-            dr.scatter_reduce(dr.ReduceOp.Add, self._count_acc, mi.Float(1), tree, rec)
-            L = dr.gather(mi.Color3f, log.emitted, index) + dr.gather(mi.Color3f, log.weight, index) * L
+            dr.scatter_reduce(dr.ReduceOp.Add, self._energy_acc, value, slot,
+                              recorded & (value > 0) & dr.isfinite(value))
+            tree = dr.gather(mi.UInt32, self._recording.tree_of_node, slot // 4, recorded)
+            dr.scatter_reduce(dr.ReduceOp.Add, self._count_acc, mi.Float(1), tree, recorded)
+
+        walk_backward(log, log.kept(), visit)
 
     def _splat_logs(self) -> float:
         """Process the vertex records of every pass rendered since the last call; returns its seconds."""
