@@ -31,6 +31,7 @@ import numpy as np
 
 from .base import Guide, NoPathState, UpdateResult
 from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
+from .grid_cells import GridCells
 from .stree import STree, iteration_length, stree_locate
 from .vertex_log import NO_RECORD, VertexLog, walk_backward
 
@@ -340,6 +341,10 @@ class QuadtreeGridGuide(_TreeGuide):
     Split-only: a leaf whose share of its tree's energy exceeds ``rho`` is subdivided (its energy spread evenly over
     the new quadrants); nothing is merged. Energies accumulate over the whole render and the trees are refreshed
     after every pass (the same structure records and samples).
+
+    Parameters: ``S`` (cells per axis of the grid, :class:`~guiding.guides.grid_cells.GridCells`; 8), ``rho``
+    (D-tree subdivision share, 0.01), ``dtree_max_depth`` (20), ``bsdf_fraction`` (0.5), ``max_nodes`` (cap on the
+    nodes of one D-tree; none).
     """
 
     name = "quadtree-grid"
@@ -348,13 +353,11 @@ class QuadtreeGridGuide(_TreeGuide):
                  max_nodes: int | None = None):
         super().__init__(bsdf_fraction, rho, dtree_max_depth, max_nodes)
         self.S = int(S)
+        self._cells = GridCells(self.S)
 
     def prepare(self, scene: mi.Scene) -> None:
-        bbox = scene.bbox()
-        self._bbox_min = np.array(bbox.min, dtype=np.float64)
-        extent = np.array(bbox.max, dtype=np.float64) - self._bbox_min
-        self._inv_extent = 1.0 / np.maximum(extent, 1e-6)
-        n = self.S ** 3
+        self._cells.set_bounds(scene.bbox())
+        n = self._cells.count
         self._forest = Forest.empty(n).rebuild(np.arange(n), SPLIT_GROW, self.rho, self.dtree_max_depth,
                                                keep_energy=True, max_nodes=self.max_nodes)
         self._sampling = self._recording = DeviceForest(self._forest)
@@ -362,11 +365,7 @@ class QuadtreeGridGuide(_TreeGuide):
         self._logs.clear()
 
     def _locate(self, p, active):
-        S = self.S
-        lo, inv = [float(x) for x in self._bbox_min], [float(x) for x in self._inv_extent]
-        rel = (p - mi.Point3f(*lo)) * mi.Vector3f(*inv)
-        cell = mi.Vector3u(dr.clip(mi.Vector3i(dr.floor(rel * S)), 0, S - 1))
-        return (cell.z * S + cell.y) * S + cell.x
+        return self._cells.cell(p)
 
     def update(self, spp_done: int) -> UpdateResult:
         splat_seconds = self._splat_logs()
@@ -385,7 +384,7 @@ class QuadtreeGridGuide(_TreeGuide):
         return UpdateResult(stats)
 
     def _structure_stats(self) -> dict:
-        stats = {"grid_cells": self.S ** 3, "memory_bytes": self._memory_bytes()}
+        stats = {"grid_cells": self._cells.count, "memory_bytes": self._memory_bytes()}
         stats.update(self._forest_stats(self._forest, "dtree"))
         return stats
 
