@@ -229,6 +229,20 @@ def _prev_float(x):
                       dr.reinterpret_array(mi.Float, dr.reinterpret_array(mi.UInt32, x.y) - 1))
 
 
+def _node_probabilities(prob: mi.Float, base: mi.UInt32, active: mi.Bool):
+    """The four quadrant probabilities of the nodes whose first slot is ``base``, and their sum."""
+    p0 = dr.gather(mi.Float, prob, base, active)
+    p1 = dr.gather(mi.Float, prob, base + 1, active)
+    p2 = dr.gather(mi.Float, prob, base + 2, active)
+    p3 = dr.gather(mi.Float, prob, base + 3, active)
+    return p0, p1, p2, p3, p0 + p1 + p2 + p3
+
+
+def _quadrant(right: mi.Bool, up: mi.Bool) -> mi.UInt32:
+    """Quadrant ``q = qx + 2·qy`` of the upper halves in ``u`` (``right``) and in ``v`` (``up``)."""
+    return dr.select(right, mi.UInt32(1), mi.UInt32(0)) + dr.select(up, mi.UInt32(2), mi.UInt32(0))
+
+
 class DeviceForest:
     """A :class:`Forest` uploaded for sampling, density evaluation and leaf lookup inside kernels."""
 
@@ -259,11 +273,7 @@ class DeviceForest:
         go = mi.Bool(active)
         while go:
             base = node * 4
-            p0 = dr.gather(mi.Float, prob, base, go)
-            p1 = dr.gather(mi.Float, prob, base + 1, go)
-            p2 = dr.gather(mi.Float, prob, base + 2, go)
-            p3 = dr.gather(mi.Float, prob, base + 3, go)
-            total = p0 + p1 + p2 + p3
+            p0, p1, p2, p3, total = _node_probabilities(prob, base, go)
             valid = total > 0
             px = dr.select(valid, (p0 + p2) / total, 0.5)
             right = s.x >= px
@@ -279,7 +289,7 @@ class DeviceForest:
             pdf *= dr.select(valid, 4 * chosen / total, 1)
             size *= 0.5
             origin += mi.Point2f(dr.select(right, size, 0), dr.select(up, size, 0))
-            q = dr.select(right, mi.UInt32(1), mi.UInt32(0)) + dr.select(up, mi.UInt32(2), mi.UInt32(0))
+            q = _quadrant(right, up)
             node = dr.gather(mi.UInt32, child, base + q, go)
             go &= node != 0
         # A leaf of side 2^-20 spans only a few dozen floats: keep the rounded point inside the leaf it came from.
@@ -302,13 +312,9 @@ class DeviceForest:
             right = x2.x >= 1
             up = x2.y >= 1
             x = mi.Point2f(dr.select(right, x2.x - 1, x2.x), dr.select(up, x2.y - 1, x2.y))
-            q = dr.select(right, mi.UInt32(1), mi.UInt32(0)) + dr.select(up, mi.UInt32(2), mi.UInt32(0))
+            q = _quadrant(right, up)
             if dr.hint(with_pdf, mode="scalar"):
-                p0 = dr.gather(mi.Float, prob, base, go)
-                p1 = dr.gather(mi.Float, prob, base + 1, go)
-                p2 = dr.gather(mi.Float, prob, base + 2, go)
-                p3 = dr.gather(mi.Float, prob, base + 3, go)
-                total = p0 + p1 + p2 + p3
+                p0, p1, p2, p3, total = _node_probabilities(prob, base, go)
                 chosen = dr.select(right, dr.select(up, p3, p1), dr.select(up, p2, p0))
                 pdf *= dr.select(total > 0, 4 * chosen / total, 1)
             slot = base + q

@@ -40,6 +40,7 @@ from .dtree import dir_to_uv, uv_to_dir  # noqa: F401
 
 
 def _capacity(n: int) -> int:
+    """The smallest power of two ≥ ``n``, at least 2 (the size of an accumulator for ``n`` entries)."""
     return 1 << max(int(n) - 1, 1).bit_length()
 
 
