@@ -151,6 +151,7 @@ class _TreeGuide(Guide):
         def visit(entry, slot, L):
             recorded = slot != NO_RECORD
             pdf = dr.gather(mi.Float, log.pdf, entry)
+            # The RGB mean as a sum times 1/3: dr.mean (the grid's) rounds differently, and would change the trees.
             value = (L.x + L.y + L.z) * (1.0 / 3.0) / pdf
             dr.scatter_reduce(dr.ReduceOp.Add, self._energy_acc, value, slot,
                               recorded & (value > 0) & dr.isfinite(value))

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-#: ``target`` of a vertex whose estimate is recorded nowhere.
+#: An accumulator index that names none: the ``target`` of a vertex whose estimate is recorded nowhere.
 NO_RECORD = 0xFFFFFFFF
 
 _CURSOR_TYPES: dict = {}
