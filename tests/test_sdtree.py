@@ -7,16 +7,18 @@ import numpy as np
 import pytest
 from mitsuba.chi2 import ChiSquareTest, LineDomain, SphericalDomain
 
-from guiding.guides.sdtree import (SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest, QuadtreeGridGuide,
-                                   SDTreeGuide, STree, doubling_schedule, stree_locate)
+from guiding.guides.dtree import SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
+from guiding.guides.sdtree import QuadtreeGridGuide, SDTreeGuide
+from guiding.guides.stree import STree, iteration_length, stree_locate
 from guiding.integrator import GuidedPathIntegrator
 from guiding.validation import Z_LIMIT, pass_means, z_scores
 from test_render import FakeClock
+from tree_helpers import doubling_schedule, lookup_np, nested_forest
 
 
 # ================================================================================================ helpers
 def random_tree(rng, max_depth: int, p_split: float, zeros: float = 0.0, depth: int = 1):
-    """A nested-list D-tree (see Forest.from_nested) with random structure and lognormal leaf energies."""
+    """A nested-list D-tree (see nested_forest) with random structure and lognormal leaf energies."""
     quads = []
     for _ in range(4):
         if depth < max_depth and rng.random() < p_split:
@@ -90,7 +92,7 @@ def test_dtree_sampling_matches_density_on_the_sphere(kind, seed):
     else:                   # leaves down to side 2^-6 (v) and 2^-6 (u), 64 x 128 cells
         trees = [random_tree(rng, 6, 0.5, zeros=0.1), random_tree(rng, 6, 0.55, zeros=0.1)]
         res = 128
-    forest = Forest.from_nested(trees)
+    forest = nested_forest(trees)
     device = DeviceForest(forest)
     tree = mi.UInt32(1)   # the second tree: node indices do not start at 0
 
@@ -103,7 +105,7 @@ def test_dtree_sampling_matches_density_on_the_sphere(kind, seed):
 
     ok, messages = _chi2(sample_func, pdf_func, res=res, ires=3)
     assert ok, messages
-    assert Forest.from_nested(trees).max_depth() == (3 if kind == "shallow" else 6)
+    assert nested_forest(trees).max_depth() == (3 if kind == "shallow" else 6)
 
 
 @pytest.mark.parametrize("seed", [2, 3])
@@ -111,7 +113,7 @@ def test_deep_dtree_leaf_frequencies_match_energies(seed):
     """Down to leaves of side 2^-20 (too fine for a histogram on the sphere): the leaf each sample lands in
     (found by an independent NumPy descent, in float64) is drawn with probability leaf energy / tree energy."""
     rng = np.random.default_rng(seed)
-    forest = Forest.from_nested([deep_tree(rng, 20), deep_tree(rng, 20)])
+    forest = nested_forest([deep_tree(rng, 20), deep_tree(rng, 20)])
     assert forest.max_depth() == 20
     device = DeviceForest(forest)
     tree_of, slot, u0, v0, side, energy = forest.leaf_table()
@@ -125,7 +127,7 @@ def test_deep_dtree_leaf_frequencies_match_energies(seed):
     def sample_func(sample):
         uv, pdf = device.sample_uv(mi.UInt32(1), mi.Point2f(sample))
         uv_np = np.stack([uv.x.numpy(), uv.y.numpy()], axis=1).astype(np.float64)
-        host_slot, host_pdf = forest.lookup_np(np.ones(len(uv_np), dtype=np.int64), uv_np)
+        host_slot, host_pdf = lookup_np(forest, np.ones(len(uv_np), dtype=np.int64), uv_np)
         # the density the descent reports is the leaf's energy share over its area
         assert np.allclose(pdf.numpy(), host_pdf, rtol=1e-4)
         return mi.Vector1f(mi.Float(rank[host_slot].astype(np.float32) + 0.5))
@@ -143,13 +145,13 @@ def test_deep_dtree_leaf_frequencies_match_energies(seed):
 
 def test_dtree_density_matches_host_lookup_everywhere():
     rng = np.random.default_rng(5)
-    forest = Forest.from_nested([deep_tree(rng, 20), random_tree(rng, 5, 0.5, zeros=0.3)])
+    forest = nested_forest([deep_tree(rng, 20), random_tree(rng, 5, 0.5, zeros=0.3)])
     device = DeviceForest(forest)
     n = 20_000
     uv = rng.random((n, 2)).astype(np.float32)
     trees = rng.integers(0, 2, n)
     slot, pdf = device.lookup_uv(mi.UInt32(trees.astype(np.uint32)), mi.Point2f(uv[:, 0], uv[:, 1]))
-    host_slot, host_pdf = forest.lookup_np(trees, uv.astype(np.float64))
+    host_slot, host_pdf = lookup_np(forest, trees, uv.astype(np.float64))
     assert (slot.numpy() == host_slot).all()
     assert np.allclose(pdf.numpy(), host_pdf, rtol=1e-4)
     # The leaf shares add up to one: the density integrates to one over the square.
@@ -158,7 +160,7 @@ def test_dtree_density_matches_host_lookup_everywhere():
         m = tree_of == t
         assert np.isclose(energy[m].sum(), forest.totals()[t])
         centres = np.stack([u0[m] + side[m] / 2, v0[m] + side[m] / 2], axis=1)
-        _, leaf_pdf = forest.lookup_np(np.full(m.sum(), t), centres)
+        _, leaf_pdf = lookup_np(forest, np.full(m.sum(), t), centres)
         assert np.isclose((leaf_pdf * side[m] ** 2).sum(), 1.0)          # ∫ p = 1 over the square
         np.testing.assert_allclose(leaf_pdf * side[m] ** 2, energy[m] / energy[m].sum(), rtol=1e-9, atol=1e-15)
 
@@ -185,7 +187,7 @@ def _guide_with(forest: Forest, guide=None) -> SDTreeGuide:
                                        {"type": "twosided", "material": {"type": "diffuse", "reflectance": 0.5}}])
 def test_bsdf_mixture_matches_density_on_a_diffuse_surface(bsdf_dict):
     rng = np.random.default_rng(7)
-    forest = Forest.from_nested([random_tree(rng, 4, 0.6, zeros=0.2)])
+    forest = nested_forest([random_tree(rng, 4, 0.6, zeros=0.2)])
     guide = _guide_with(forest)
     bsdf = mi.load_dict(bsdf_dict)
     ctx = mi.BSDFContext()
@@ -222,7 +224,7 @@ def test_delta_surfaces_and_empty_trees_use_the_bsdf_alone():
     sample = mi.Vector3f(*[mi.Float(rng.random(size).astype(np.float32)) for _ in range(3)])
     si = _diffuse_vertex(size)
     active = dr.full(mi.Bool, True, size)
-    for bsdf_dict, forest in [({"type": "conductor"}, Forest.from_nested([random_tree(rng, 3, 0.5)])),
+    for bsdf_dict, forest in [({"type": "conductor"}, nested_forest([random_tree(rng, 3, 0.5)])),
                               ({"type": "diffuse"}, Forest.empty(1))]:
         bsdf = mi.load_dict(bsdf_dict)
         guide = _guide_with(forest)
@@ -235,7 +237,7 @@ def test_delta_surfaces_and_empty_trees_use_the_bsdf_alone():
 
 # ============================================================================================ refinement
 def test_dtree_refinement_subdivides_above_rho_and_conserves_energy():
-    forest = Forest.from_nested([[0.5, 0.3, 0.2, 0.0]])
+    forest = nested_forest([[0.5, 0.3, 0.2, 0.0]])
     new = forest.rebuild([0], SPLIT_REFINE, rho=0.01, max_depth=20, keep_energy=True)
     # Each non-empty quadrant is split while a quarter-share stays above 1 %: 0.5 → .125 → .031 → .0078 (stop),
     # 0.3 → .075 → .019 → .0047, 0.2 → .05 → .0125 → .0031: three levels under each, 1 + 4 + 16 nodes.
@@ -254,15 +256,15 @@ def test_dtree_refinement_subdivides_above_rho_and_conserves_energy():
 
 
 def test_dtree_refinement_threshold_is_strict():
-    equal = Forest.from_nested([[1.0, 1.0, 1.0, 1.0]]).rebuild([0], SPLIT_REFINE, rho=0.25)
+    equal = nested_forest([[1.0, 1.0, 1.0, 1.0]]).rebuild([0], SPLIT_REFINE, rho=0.25)
     assert equal.n_nodes == 1                          # a share of exactly rho is not subdivided
-    above = Forest.from_nested([[2.0, 1.0, 1.0, 0.0]]).rebuild([0], SPLIT_REFINE, rho=0.25)
+    above = nested_forest([[2.0, 1.0, 1.0, 0.0]]).rebuild([0], SPLIT_REFINE, rho=0.25)
     assert above.n_nodes == 2 and above.child[0, 0] == 1   # 0.5 > rho: split once, children 0.125 each
 
 
 def test_dtree_refinement_merges_low_energy_subtrees():
     low = [0.001, 0.001, 0.001, 0.001]
-    forest = Forest.from_nested([[low, 1.0, 1.0, 1.0]])
+    forest = nested_forest([[low, 1.0, 1.0, 1.0]])
     assert forest.n_nodes == 2
     new = forest.rebuild([0], SPLIT_REFINE, rho=0.01, keep_energy=True)
     assert new.child[0, 0] == -1                       # 0.004 / 3.004 < 1 %: the subtree became one leaf
@@ -274,7 +276,7 @@ def test_dtree_refinement_merges_low_energy_subtrees():
 
 @pytest.mark.parametrize("max_depth", [5, 20])
 def test_dtree_refinement_stops_at_max_depth(max_depth):
-    forest = Forest.from_nested([chain(25)])           # all the energy in a leaf of side 2^-25
+    forest = nested_forest([chain(25)])           # all the energy in a leaf of side 2^-25
     assert forest.max_depth() == 25
     new = forest.rebuild([0], SPLIT_REFINE, rho=0.01, max_depth=max_depth, keep_energy=True)
     assert new.n_nodes == max_depth and new.max_depth() == max_depth
@@ -285,7 +287,7 @@ def test_dtree_refinement_stops_at_max_depth(max_depth):
 
 def test_dtree_rebuild_conserves_energy_region_by_region():
     rng = np.random.default_rng(11)
-    forest = Forest.from_nested([random_tree(rng, 6, 0.5, zeros=0.2) for _ in range(3)])
+    forest = nested_forest([random_tree(rng, 6, 0.5, zeros=0.2) for _ in range(3)])
     for mode in (SPLIT_REFINE, SPLIT_GROW, SPLIT_COPY):
         new = forest.rebuild([2, 0, 0], mode, rho=0.01, keep_energy=True)
         np.testing.assert_allclose(new.totals(), forest.totals()[[2, 0, 0]])
@@ -309,7 +311,7 @@ def test_dtree_rebuild_conserves_energy_region_by_region():
 
 def test_dtree_grow_mode_never_merges():
     low = [0.001, 0.001, 0.001, 0.001]
-    forest = Forest.from_nested([[low, 1.0, 1.0, 1.0]])
+    forest = nested_forest([[low, 1.0, 1.0, 1.0]])
     grown = forest.rebuild([0], SPLIT_GROW, rho=0.01, keep_energy=True)
     assert grown.child[0, 0] >= 0                      # kept, although its share is below rho
     assert grown.n_nodes == 2 + 3 * 21
@@ -354,6 +356,8 @@ def test_doubling_schedule():
     assert doubling_schedule(8, 64) == [(0, 8), (8, 24), (24, 64)]
     assert doubling_schedule(8, 8) == [(0, 8)]
     assert doubling_schedule(1, 1000)[-1][1] == 1000
+    assert iteration_length(8, 1, 8, 64) == (16, False) and iteration_length(8, 2, 24, 64) == (40, True)
+    assert iteration_length(8, 5, 248) == (256, False)     # without a budget no iteration is the last
 
 
 # ============================================================================================ rendering
@@ -451,7 +455,7 @@ def test_budget_makes_the_last_iteration_run_to_the_end_without_learning(cornell
     from guiding.render import Budget, render
 
     guide = SDTreeGuide(c=300, base_spp=8, budget_spp=64)
-    assert guide.iteration_bounds() == [(0, 8), (8, 24), (24, 64)]
+    assert doubling_schedule(guide.base_spp, guide.budget_spp) == [(0, 8), (8, 24), (24, 64)]
     result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=64, pass_spp=8), seed=3)
     stats = [p.guide for p in result.passes]
     assert [p.iteration_done for p in result.passes] == [True, False, True] + [False] * 5

@@ -43,12 +43,11 @@ import mitsuba as mi
 from . import PROPOSALS, RULES, SAMPLERS, default_proposal
 from .base import Guide, UpdateResult
 from .grid_record import MIN_EXPLORATION, RadianceRecord, table_needs
+from .vertex_log import NO_RECORD, VertexLog, walk_backward
 
 #: Least BSDF share of the rejection samplers (module docstring): it bounds hemi_rej's weight by 10·ρ (measured at
 #: door-ajar's vertices, results/bounce_weights.md: second moment 1.8·ρ², against 1.9 at 0.05 and 1.6 at 0.2).
 MIN_BSDF_SHARE = 0.1
-#: Index of "no (cell, bin) to record into".
-NO_RECORD = 0xFFFFFFFF
 
 
 @dataclass
@@ -57,15 +56,6 @@ class SarsaState:
 
     previous: mi.UInt32 = None
     DRJIT_STRUCT = {"previous": mi.UInt32}
-
-
-@dataclass
-class MonteCarloState:
-    """Where this path's vertex records go in the guide's per-path buffer."""
-
-    lane: mi.UInt32 = None
-    vertices: mi.UInt32 = None
-    DRJIT_STRUCT = {"lane": mi.UInt32, "vertices": mi.UInt32}
 
 
 @dataclass
@@ -150,7 +140,7 @@ class GridGuide(Guide):
             spatial_resolution, directional_resolution, normal_resolution, **table_needs(rule, sampler, proposal),
             min_exploration=min_exploration)
         self.trained = False
-        self._mc_buffers = None
+        self._mc_log: VertexLog | None = None      # the pass's vertices (rule mc)
         self._reset_counters()
 
     # ================================================================ host side
@@ -346,23 +336,15 @@ class GridGuide(Guide):
     # ---------------------------------------------------------------- learning
     def new_paths(self, size: int, max_depth: int):
         if self.rule == "mc":
-            slots = size * max_depth
-            self._mc_buffers = (dr.full(mi.UInt32, NO_RECORD, slots), dr.zeros(mi.Color3f, slots),
-                                dr.zeros(mi.Color3f, slots), max_depth)
-            return MonteCarloState(dr.arange(mi.UInt32, size), dr.zeros(mi.UInt32, size))
+            self._mc_log = VertexLog(size, max_depth)
+            return self._mc_log.new_paths()
         return SarsaState(dr.full(mi.UInt32, NO_RECORD, size))
 
     def record(self, state, si, emitted, bs, weight, continues, active):
         table = self.record_table
         here = dr.select(continues, table.index(si.p, si.to_world(bs.wo)), NO_RECORD)
         if self.rule == "mc":
-            indices, emitted_buffer, weight_buffer, max_depth = self._mc_buffers
-            slot = state.lane * max_depth + state.vertices
-            dr.scatter(indices, here, slot, active)
-            dr.scatter(emitted_buffer, mi.Color3f(emitted), slot, active)
-            dr.scatter(weight_buffer, mi.Color3f(weight), slot, active)
-            state.vertices += dr.select(active, 1, 0)
-            return state
+            return self._mc_log.append(state, emitted, weight, continues, here, active)
 
         target = dr.mean(emitted)
         onward = dr.mean(weight) * dr.gather(mi.Float, table.q, here, continues)  # one-sample ∫ f·Q·cos
@@ -382,20 +364,9 @@ class GridGuide(Guide):
 
     def finish_paths(self, state) -> None:
         if self.rule == "mc":
-            self._backward_walk(state)
-
-    @dr.syntax
-    def _backward_walk(self, state: MonteCarloState) -> None:
-        """Monte Carlo targets: walk each path backwards, ``L ← Le_j + w_j·L``, recording L at every vertex."""
-        indices, emitted_buffer, weight_buffer, max_depth = self._mc_buffers
-        radiance = mi.Color3f(0)        # Radiance arriving at vertex j along its outgoing direction
-        j = mi.UInt32(state.vertices)
-        while j > 0:
-            j -= 1
-            slot = state.lane * max_depth + j
-            index = dr.gather(mi.UInt32, indices, slot)
-            self._accumulate(index, dr.mean(radiance), index != NO_RECORD)
-            radiance = dr.gather(mi.Color3f, emitted_buffer, slot) + dr.gather(mi.Color3f, weight_buffer, slot) * radiance
+            # Monte Carlo targets: the radiance each segment brought back, walked as soon as the paths end.
+            walk_backward(self._mc_log, state,
+                          lambda entry, target, L: self._accumulate(target, dr.mean(L), target != NO_RECORD))
 
     def _accumulate(self, index: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:
         table = self.record_table

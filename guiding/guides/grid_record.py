@@ -23,6 +23,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..directions import NormalBins, SphereBins
+from .grid_cells import GridCells
 
 #: Added to Q before normalising, so that no bin has zero probability (method.md §4).
 Q_OFFSET = 1e-6
@@ -112,19 +113,16 @@ class RadianceRecord:
     def __init__(self, spatial_resolution: int, directional_resolution: int, normal_resolution: int = 5,
                  needs_cdf: bool = False, needs_memo: bool = False, needs_hemi_cdf: bool = False,
                  needs_value: bool = False, min_exploration: float = MIN_EXPLORATION):
-        if spatial_resolution < 1:
-            raise ValueError(f"spatial resolution must be >= 1, got {spatial_resolution}")
+        self.grid = GridCells(spatial_resolution)
         self.S = spatial_resolution
         self.min_exploration = min_exploration
         self.bins = SphereBins(directional_resolution)
         self.normal_bins = NormalBins(normal_resolution)
-        self.cells = spatial_resolution ** 3
+        self.cells = self.grid.count
         self.needs_cdf, self.needs_hemi_cdf, self.needs_value = needs_cdf, needs_hemi_cdf, needs_value
         self.needs_pairs = needs_memo or needs_hemi_cdf or needs_value
         B, NB, C = self.bins.count, self.normal_bins.count, self.cells
 
-        self.bbox_min = mi.Point3f(0)
-        self.inv_extent = mi.Vector3f(1)
         self.sanitised: dict[str, int] = {}
         self.acc_sum = dr.zeros(mi.Float64, C * B)
         self.acc_count = dr.zeros(mi.Float64, C * B)
@@ -144,14 +142,12 @@ class RadianceRecord:
 
     # ------------------------------------------------------------------ geometry
     def set_bounds(self, bbox: mi.BoundingBox3f) -> None:
-        extent = dr.maximum(bbox.max - bbox.min, 1e-6 * dr.maximum(dr.max(bbox.max - bbox.min), 1e-3))
-        self.bbox_min = mi.Point3f(bbox.min)
-        self.inv_extent = mi.Vector3f(dr.rcp(extent))
+        """Span the grid over the scene's bounding box ``bbox`` (:meth:`GridCells.set_bounds`)."""
+        self.grid.set_bounds(bbox)
 
     def cell(self, p: mi.Point3f) -> mi.UInt32:
-        """``clamp(floor(S·(p − bbox.min)/extent), 0, S − 1)``, flattened."""
-        c = dr.clip(mi.Vector3i(dr.floor((p - self.bbox_min) * self.inv_extent * self.S)), 0, self.S - 1)
-        return mi.UInt32((c.z * self.S + c.y) * self.S + c.x)
+        """The flat index of the cell of position ``p``."""
+        return self.grid.cell(p)
 
     def index(self, p: mi.Point3f, d: mi.Vector3f) -> mi.UInt32:
         """Flat (cell, bin) index of position ``p`` and world direction ``d``."""

@@ -1,0 +1,337 @@
+"""D-trees (Müller, Gross, Novák 2017): quadtrees over the sphere of directions, on the host and on the device.
+
+Directional distributions are quadtrees ("D-trees") over the equal-area cylindrical square of world directions,
+``(u, v) ∈ [0, 1)²`` with ``cos θ = 2u − 1`` and ``φ = 2πv`` (θ from the world z axis): equal areas in ``(u, v)``
+are equal solid angles, so a density ``p_uv`` on the square is ``p_uv / (4π)`` per steradian.
+
+**Host layout** (:class:`Forest`, NumPy): all D-trees of a guide in one node table, nodes in breadth-first order
+(level by level over all trees), so tree ``t``'s root is node ``t`` and every child comes after its parent. A node
+has four quadrants ``q = qx + 2·qy`` (``qx``: upper half in ``u``, ``qy``: upper half in ``v``), each with a child
+node index (``-1`` where the quadrant is a leaf) and an energy (the energy recorded in the quadrant's region).
+A root node has depth 1; a quadrant of a node at depth ``d`` has side ``2^-d``.
+
+**Device layout** (:class:`DeviceForest`): ``child[4n + q]`` (UInt32, 0 for a leaf: a root is never a child) and
+``prob[4n + q]`` (Float, the quadrant's share of its node's energy; a node without energy gets 1/4 each). Sampling
+descends from the root choosing quadrants with these probabilities (first the ``u`` half, then the ``v`` half,
+reusing the rescaled random number as in Müller's code), then picks a uniform point inside the leaf; the density is
+``Π 4·prob`` over the descent (= leaf energy share / leaf area). Recording addresses a leaf by its slot
+``4n + q`` in an energy accumulator of the same size.
+"""
+
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..directions import safe_normalize
+
+#: Largest float32 below one: samples and coordinates are clamped to [0, ONE_MINUS_EPS].
+ONE_MINUS_EPS = float(np.nextafter(np.float32(1), np.float32(0)))
+INV_4PI = 1.0 / (4.0 * math.pi)
+
+SPLIT_COPY = "copy"        # keep the structure as it is
+SPLIT_REFINE = "refine"    # Müller: subdivide while the share exceeds rho (up to max_depth), merge below
+SPLIT_GROW = "grow"        # split-only: keep every existing node, subdivide leaves whose share exceeds rho
+
+
+# ===================================================================================================================
+#  Direction <-> equal-area cylindrical square
+# ===================================================================================================================
+def dir_to_uv(d):
+    """World direction → ``(u, v) ∈ [0, 1)²`` with ``u = (cos θ + 1)/2``, ``v = φ / 2π``.
+
+    ``d`` may have any length: ``u`` reads ``cos θ`` off the unit vector (the zero vector and non-finite input,
+    which have no direction, map to +z), so no input gives a point outside the square or NaN."""
+    d = safe_normalize(d)
+    u = dr.clip((d.z + 1) * 0.5, 0, ONE_MINUS_EPS)
+    v = dr.atan2(d.y, d.x) * (0.5 / dr.pi)
+    v = dr.clip(dr.select(v < 0, v + 1, v), 0, ONE_MINUS_EPS)
+    return mi.Point2f(u, v)
+
+
+def uv_to_dir(uv):
+    """Inverse of :func:`dir_to_uv`."""
+    cos_theta = 2 * uv.x - 1
+    sin_theta = dr.safe_sqrt(dr.fma(-cos_theta, cos_theta, 1))
+    sin_phi, cos_phi = dr.sincos(2 * dr.pi * uv.y)
+    return mi.Vector3f(cos_phi * sin_theta, sin_phi * sin_theta, cos_theta)
+
+
+# ===================================================================================================================
+#  D-trees on the host: a forest in one breadth-first node table
+# ===================================================================================================================
+class Forest:
+    """All D-trees of a guide (NumPy): ``child`` (N, 4) int32 (-1: leaf quadrant), ``energy`` (N, 4) float64,
+    ``depth`` (N,) int16 (roots: 1), ``tree`` (N,) int32; tree ``t``'s root is node ``t``."""
+
+    def __init__(self, child: np.ndarray, energy: np.ndarray, depth: np.ndarray, tree: np.ndarray, n_trees: int):
+        self.child = np.asarray(child, dtype=np.int32).reshape(-1, 4)
+        self.energy = np.asarray(energy, dtype=np.float64).reshape(-1, 4)
+        self.depth = np.asarray(depth, dtype=np.int16)
+        self.tree = np.asarray(tree, dtype=np.int32)
+        self.n_trees = int(n_trees)
+        assert len(self.child) == len(self.energy) == len(self.depth) == len(self.tree) >= self.n_trees
+
+    # ------------------------------------------------------------------------------------------------ builders
+    @classmethod
+    def empty(cls, n_trees: int) -> "Forest":
+        """``n_trees`` trees of one node each (four leaf quadrants), without energy."""
+        return cls(np.full((n_trees, 4), -1), np.zeros((n_trees, 4)), np.ones(n_trees), np.arange(n_trees),
+                   n_trees)
+
+    # ---------------------------------------------------------------------------------------------- queries
+    @property
+    def n_nodes(self) -> int:
+        return len(self.child)
+
+    def totals(self) -> np.ndarray:
+        """Energy of each tree."""
+        return self.energy[: self.n_trees].sum(axis=1)
+
+    def nodes_per_tree(self) -> np.ndarray:
+        return np.bincount(self.tree, minlength=self.n_trees)
+
+    def max_depth(self) -> int:
+        return int(self.depth.max())
+
+    def leaf_table(self):
+        """Every leaf quadrant: (tree, slot = 4·node + q, u0, v0, side, energy), in node order (NumPy arrays)."""
+        n = self.n_nodes
+        origin = np.zeros((n, 2))
+        side = np.ones(n)
+        q_off = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=np.float64)
+        for node in range(n):  # parents come first
+            half = side[node] * 0.5
+            for q in range(4):
+                c = self.child[node, q]
+                if c >= 0:
+                    origin[c] = origin[node] + half * q_off[q]
+                    side[c] = half
+        nodes, quads = np.nonzero(self.child < 0)
+        half = side[nodes] * 0.5
+        corner = origin[nodes] + half[:, None] * q_off[quads]
+        return (self.tree[nodes], 4 * nodes + quads, corner[:, 0], corner[:, 1], half, self.energy[nodes, quads])
+
+    # -------------------------------------------------------------------------------------------- updates
+    def propagate(self) -> None:
+        """Make every interior quadrant's energy the sum of its child node's quadrants (bottom-up)."""
+        for d in range(int(self.depth.max()), 0, -1):
+            nodes = np.nonzero(self.depth == d)[0]
+            sub = self.child[nodes]
+            inner = sub >= 0
+            if inner.any():
+                rows, quads = np.nonzero(inner)
+                self.energy[nodes[rows], quads] = self.energy[sub[rows, quads]].sum(axis=1)
+
+    def deposit(self, leaf_energy: np.ndarray, accumulate: bool = False) -> None:
+        """Set (or add) leaf quadrant energies from a flat per-slot array (4·N values), then propagate."""
+        flat = np.asarray(leaf_energy, dtype=np.float64).reshape(-1, 4)[: self.n_nodes]
+        leaves = self.child < 0
+        if accumulate:
+            self.energy[leaves] += flat[leaves]
+        else:
+            self.energy[leaves] = flat[leaves]
+        self.propagate()
+
+    def rebuild(self, sources, mode: str, rho: float = 0.01, max_depth: int = 20,
+                keep_energy: bool = True, max_nodes: int | None = None) -> "Forest":
+        """A new forest whose tree ``i`` is derived from tree ``sources[i]`` of this one (sources may repeat).
+
+        ``mode``: :data:`SPLIT_COPY` keeps the structure; :data:`SPLIT_REFINE` (Müller's D-tree rebuild) subdivides
+        a quadrant while its share of the tree's energy exceeds ``rho`` and its node is shallower than
+        ``max_depth``, and makes every other quadrant a leaf (merging the subtree below it); :data:`SPLIT_GROW`
+        keeps every existing node and also subdivides leaves under the same rule (split-only). A new child below a
+        former leaf gets a quarter of the leaf's energy in each quadrant; an existing child keeps its energies. A
+        tree without energy uses the share ``4^-depth`` (uniform refinement). ``keep_energy=False`` zeroes the
+        energies of the result (the tree that records the next iteration). ``max_nodes`` caps the nodes of a tree
+        (further subdivisions are dropped, breadth-first).
+        """
+        sources = np.asarray(sources, dtype=np.int64)
+        n_new = len(sources)
+        totals = self.totals()[sources]
+        # frontier: the nodes of one level of the new forest
+        f_old = sources.copy()                     # node of this forest it copies (-1: below a former leaf)
+        f_energy = self.energy[sources].copy()     # (k, 4)
+        f_tree = np.arange(n_new)
+        depth = 1
+        levels_child, levels_energy, levels_depth, levels_tree = [], [], [], []
+        count = np.zeros(n_new, dtype=np.int64) + 1
+        next_id = n_new
+        while len(f_old):
+            has_old = f_old >= 0
+            old_child = np.where(has_old[:, None], self.child[np.maximum(f_old, 0)], -1)
+            tot = totals[f_tree][:, None]
+            share = np.where(tot > 0, f_energy / np.where(tot > 0, tot, 1), 0.25 ** depth)
+            can = (share > rho) & (depth < max_depth)
+            if mode == SPLIT_COPY:
+                split = old_child >= 0
+            elif mode == SPLIT_REFINE:
+                split = can
+            elif mode == SPLIT_GROW:
+                split = (old_child >= 0) | can
+            else:
+                raise ValueError(f"unknown rebuild mode {mode!r}")
+            if max_nodes is not None:
+                # keep the first subdivisions of each tree (row-major order) while the tree has room
+                rows, quads = np.nonzero(split)
+                order = np.argsort(f_tree[rows], kind="stable")
+                t_sorted = f_tree[rows][order]
+                rank = np.arange(len(order)) - np.searchsorted(t_sorted, t_sorted, side="left")
+                allowed = count[t_sorted] + rank < max_nodes
+                keep = np.zeros(len(rows), dtype=bool)
+                keep[order] = allowed
+                split = np.zeros_like(split)
+                split[rows[keep], quads[keep]] = True
+                np.add.at(count, f_tree[rows[keep]], 1)
+            rows, quads = np.nonzero(split)
+            ids = np.full(split.shape, -1, dtype=np.int64)
+            ids[rows, quads] = next_id + np.arange(len(rows))
+            next_id += len(rows)
+            levels_child.append(ids)
+            levels_energy.append(f_energy)
+            levels_depth.append(np.full(len(f_old), depth))
+            levels_tree.append(f_tree)
+            # next level
+            nxt_old = old_child[rows, quads]
+            from_old = nxt_old >= 0
+            nxt_energy = np.repeat(f_energy[rows, quads][:, None] / 4.0, 4, axis=1)
+            if from_old.any():
+                nxt_energy[from_old] = self.energy[nxt_old[from_old]]
+            f_old, f_energy, f_tree = nxt_old, nxt_energy, f_tree[rows]
+            depth += 1
+        child = np.concatenate(levels_child)
+        energy = np.concatenate(levels_energy)
+        if not keep_energy:
+            energy = np.zeros_like(energy)
+        return Forest(child, energy, np.concatenate(levels_depth), np.concatenate(levels_tree), n_new)
+
+    def probabilities(self) -> np.ndarray:
+        """Each quadrant's share of its node's energy (1/4 each for a node without energy), shape (N, 4)."""
+        tot = self.energy.sum(axis=1, keepdims=True)
+        return np.where(tot > 0, self.energy / np.where(tot > 0, tot, 1), 0.25)
+
+
+# ===================================================================================================================
+#  D-trees on the device
+# ===================================================================================================================
+def padded(a: np.ndarray, minimum: int = 2) -> np.ndarray:
+    """``a`` with zeros appended up to ``minimum`` entries, for uploading as a device table (D-trees, S-tree):
+    arrays of one element may be traced differently from larger ones, so every table keeps >= 2 entries."""
+    return a if len(a) >= minimum else np.concatenate([a, np.zeros(minimum - len(a), dtype=a.dtype)])
+
+
+def _prev_float(x):
+    """The largest float below ``x`` (``x`` > 0)."""
+    return mi.Point2f(dr.reinterpret_array(mi.Float, dr.reinterpret_array(mi.UInt32, x.x) - 1),
+                      dr.reinterpret_array(mi.Float, dr.reinterpret_array(mi.UInt32, x.y) - 1))
+
+
+def _node_probabilities(prob: mi.Float, base: mi.UInt32, active: mi.Bool):
+    """The four quadrant probabilities of the nodes whose first slot is ``base``, and their sum."""
+    p0 = dr.gather(mi.Float, prob, base, active)
+    p1 = dr.gather(mi.Float, prob, base + 1, active)
+    p2 = dr.gather(mi.Float, prob, base + 2, active)
+    p3 = dr.gather(mi.Float, prob, base + 3, active)
+    return p0, p1, p2, p3, p0 + p1 + p2 + p3
+
+
+def _quadrant(right: mi.Bool, up: mi.Bool) -> mi.UInt32:
+    """Quadrant ``q = qx + 2·qy`` of the upper halves in ``u`` (``right``) and in ``v`` (``up``)."""
+    return dr.select(right, mi.UInt32(1), mi.UInt32(0)) + dr.select(up, mi.UInt32(2), mi.UInt32(0))
+
+
+class DeviceForest:
+    """A :class:`Forest` uploaded for sampling, density evaluation and leaf lookup inside kernels."""
+
+    def __init__(self, forest: Forest):
+        self.n_nodes = forest.n_nodes
+        self.n_trees = forest.n_trees
+        child = np.where(forest.child < 0, 0, forest.child).astype(np.uint32).ravel()
+        self.child = mi.UInt32(padded(child))
+        self.prob = mi.Float(padded(forest.probabilities().astype(np.float32).ravel()))
+        self.tree_of_node = mi.UInt32(padded(forest.tree.astype(np.uint32)))
+        self.has_energy = mi.Bool(padded(forest.totals() > 0))
+        dr.eval(self.child, self.prob, self.tree_of_node, self.has_energy)
+
+    @property
+    def nbytes(self) -> int:
+        return 4 * (2 * 4 * self.n_nodes + self.n_nodes) + self.n_trees
+
+    # ----------------------------------------------------------------------------------------- device code
+    @dr.syntax
+    def sample_uv(self, tree, sample, active=True):
+        """Descend tree ``tree`` with the 2D ``sample``: a point of the square and its density there."""
+        child, prob = self.child, self.prob
+        node = mi.UInt32(tree)
+        s = mi.Point2f(sample)
+        origin = mi.Point2f(0)
+        size = mi.Float(1)
+        pdf = mi.Float(1)
+        go = mi.Bool(active)
+        while go:
+            base = node * 4
+            p0, p1, p2, p3, total = _node_probabilities(prob, base, go)
+            valid = total > 0
+            px = dr.select(valid, (p0 + p2) / total, 0.5)
+            right = s.x >= px
+            sx = dr.select(right, (s.x - px) / (1 - px), s.x / px)
+            a = dr.select(right, p1, p0)
+            b = dr.select(right, p3, p2)
+            ab_valid = (a + b) > 0
+            py = dr.select(ab_valid, a / (a + b), 0.5)
+            up = s.y >= py
+            sy = dr.select(up, (s.y - py) / (1 - py), s.y / py)
+            s = mi.Point2f(dr.clip(sx, 0, ONE_MINUS_EPS), dr.clip(sy, 0, ONE_MINUS_EPS))
+            chosen = dr.select(up, b, a)
+            pdf *= dr.select(valid, 4 * chosen / total, 1)
+            size *= 0.5
+            origin += mi.Point2f(dr.select(right, size, 0), dr.select(up, size, 0))
+            q = _quadrant(right, up)
+            node = dr.gather(mi.UInt32, child, base + q, go)
+            go &= node != 0
+        # A leaf of side 2^-20 spans only a few dozen floats: keep the rounded point inside the leaf it came from.
+        upper = _prev_float(origin + size)
+        uv = mi.Point2f(dr.minimum(origin.x + size * s.x, upper.x), dr.minimum(origin.y + size * s.y, upper.y))
+        return uv, pdf
+
+    @dr.syntax
+    def lookup_uv(self, tree, uv, active=True, with_pdf=True):
+        """Leaf slot (``4·node + q``) containing ``uv`` in tree ``tree``, and the density there."""
+        child, prob = self.child, self.prob
+        node = mi.UInt32(tree)
+        x = mi.Point2f(uv)
+        pdf = mi.Float(1)
+        slot = mi.UInt32(0)
+        go = mi.Bool(active)
+        while go:
+            base = node * 4
+            x2 = x * 2
+            right = x2.x >= 1
+            up = x2.y >= 1
+            x = mi.Point2f(dr.select(right, x2.x - 1, x2.x), dr.select(up, x2.y - 1, x2.y))
+            q = _quadrant(right, up)
+            if dr.hint(with_pdf, mode="scalar"):
+                p0, p1, p2, p3, total = _node_probabilities(prob, base, go)
+                chosen = dr.select(right, dr.select(up, p3, p1), dr.select(up, p2, p0))
+                pdf *= dr.select(total > 0, 4 * chosen / total, 1)
+            slot = base + q
+            node = dr.gather(mi.UInt32, child, slot, go)
+            go &= node != 0
+        return slot, pdf
+
+    def sample_dir(self, tree, sample, active=True):
+        """A world direction drawn from tree ``tree`` and its solid-angle density."""
+        uv, pdf = self.sample_uv(tree, sample, active)
+        return uv_to_dir(uv), pdf * INV_4PI
+
+    def pdf_dir(self, tree, d, active=True):
+        """Solid-angle density of world direction ``d`` under tree ``tree``."""
+        _, pdf = self.lookup_uv(tree, dir_to_uv(d), active)
+        return pdf * INV_4PI
+
+    def slot_of_dir(self, tree, d, active=True):
+        slot, _ = self.lookup_uv(tree, dir_to_uv(d), active, with_pdf=False)
+        return slot

@@ -1,0 +1,125 @@
+"""The S-tree of the SD-tree (Müller, Gross, Novák 2017): a binary spatial tree whose leaves own D-trees, and the
+doubling schedule of its training iterations.
+
+**Layout** (:class:`STree`): ``child`` (index of the first of two adjacent children, 0 for a leaf), ``axis`` and
+``split`` (midpoint) per node, ``tree`` (the D-tree of a leaf). A leaf splits at its midpoint along its axis; its
+children split along the next axis (x, y, z, x, …).
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .dtree import padded
+
+
+class STree:
+    """Binary spatial tree over a cube around the scene; a leaf's ``tree`` is the index of its D-tree."""
+
+    def __init__(self, bbox_min, bbox_max, max_depth: int = 60):
+        lo = np.asarray(bbox_min, dtype=np.float64)
+        hi = np.asarray(bbox_max, dtype=np.float64)
+        center, half = (lo + hi) / 2, max(float(np.max(hi - lo)) / 2, 1e-6) * (1 + 1e-3)
+        self.lo = [center - half]
+        self.hi = [center + half]
+        self.child = [-1]       # first of two children, -1 for a leaf
+        self.axis = [0]         # the axis this node splits along
+        self.tree = [0]         # leaves: D-tree index
+        self.depth = [0]
+        self.max_depth = max_depth
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.child)
+
+    def leaves(self) -> list[int]:
+        return [n for n in range(self.n_nodes) if self.child[n] < 0]
+
+    @property
+    def n_leaves(self) -> int:
+        return sum(1 for c in self.child if c < 0)
+
+    def split_value(self, node: int) -> float:
+        a = self.axis[node]
+        return 0.5 * (self.lo[node][a] + self.hi[node][a])
+
+    def refine(self, counts, threshold: float) -> np.ndarray:
+        """Split every leaf whose vertex count (``counts[tree]``) exceeds ``threshold``, at its midpoint; the two
+        children inherit the D-tree and half the count each and split again while that half still exceeds it.
+        Leaves are renumbered in node order; returns, for each new leaf, the index of the D-tree it inherits."""
+        counts = np.asarray(counts, dtype=np.float64)
+        work = [(n, counts[self.tree[n]]) for n in self.leaves()]
+        while work:
+            node, count = work.pop()
+            if not (count > threshold) or self.depth[node] >= self.max_depth:
+                continue
+            a = self.axis[node]
+            mid = self.split_value(node)
+            first = self.n_nodes
+            self.child[node] = first
+            for side in range(2):
+                lo, hi = self.lo[node].copy(), self.hi[node].copy()
+                if side == 0:
+                    hi[a] = mid
+                else:
+                    lo[a] = mid
+                self.lo.append(lo)
+                self.hi.append(hi)
+                self.child.append(-1)
+                self.axis.append((a + 1) % 3)
+                self.tree.append(self.tree[node])
+                self.depth.append(self.depth[node] + 1)
+                work.append((first + side, count / 2))
+        leaves = self.leaves()
+        sources = np.array([self.tree[n] for n in leaves], dtype=np.int64)
+        for new, n in enumerate(leaves):
+            self.tree[n] = new
+        return sources
+
+    def to_device(self) -> dict:
+        child = np.array([max(c, 0) for c in self.child], dtype=np.uint32)
+        axis = np.array(self.axis, dtype=np.uint32)
+        split = np.array([self.split_value(n) for n in range(self.n_nodes)], dtype=np.float32)
+        tree = np.array([t if c < 0 else 0 for t, c in zip(self.tree, self.child)], dtype=np.uint32)
+        arrays = {"child": mi.UInt32(padded(child)), "axis": mi.UInt32(padded(axis)), "split": mi.Float(padded(split)),
+                  "tree": mi.UInt32(padded(tree))}
+        dr.eval(*arrays.values())
+        return arrays
+
+
+@dr.syntax
+def stree_locate(arrays: dict, p, active=True):
+    """D-tree index of the S-tree leaf containing ``p`` (device)."""
+    child, axis, split = arrays["child"], arrays["axis"], arrays["split"]
+    node = mi.UInt32(0)
+    go = mi.Bool(active)
+    while go:
+        first = dr.gather(mi.UInt32, child, node, go)
+        leaf = first == 0
+        a = dr.gather(mi.UInt32, axis, node, go)
+        mid = dr.gather(mi.Float, split, node, go)
+        coord = dr.select(a == 0, p.x, dr.select(a == 1, p.y, p.z))
+        node = dr.select(leaf, node, first + dr.select(coord >= mid, mi.UInt32(1), mi.UInt32(0)))
+        go &= ~leaf
+    return dr.gather(mi.UInt32, arrays["tree"], node, active)
+
+
+# ===================================================================================================================
+#  Schedule
+# ===================================================================================================================
+def iteration_length(base_spp: int, k: int, start_spp: int, budget_spp: int | None = None) -> tuple[int, bool]:
+    """Length in spp of training iteration ``k``, which starts at ``start_spp``, and whether it is the last one.
+
+    Iteration ``k`` spans ``base_spp · 2^k`` spp. With a budget of ``budget_spp``, an iteration that the next one
+    could not double is extended to the end of the budget, and is the last (Müller's rule: the last iteration has
+    at least half the budget to itself); without one, no iteration is the last."""
+    length = base_spp * 2 ** k
+    if budget_spp is None:
+        return length, False
+    remaining = budget_spp - start_spp
+    length = min(length, remaining)
+    if remaining - length < 2 * length:
+        return remaining, True
+    return length, False
