@@ -1,63 +1,100 @@
-"""Named methods: a method is a name for a guide and its parameters (a table row, a figure column)."""
+"""Named methods: a method is a name for a guide class and its typed parameters (a table row, a figure column).
+
+``ours`` is ``GridGuide`` with ``GridParameters(rule="sarsa", sampler="hemi_rej_plus")``; every ``{rule}-{sampler}``
+pair is a method too. The suffix ``-S<n>`` (and, for the grid guide, ``-D<n>``) is shorthand for the resolution:
+``ours-S4-D32``, ``mc-hemi_inv-S16``, ``quadtree-grid-S16``. ``make_guide(name, **overrides)`` builds a fresh guide,
+with any parameter changed (``make_guide("sarsa-hemi_inv", bsdf_fraction=0)``).
+"""
 
 from __future__ import annotations
 
 import os
 import re
-from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 from .errors import GuidingError
-from .guides import RULES, SAMPLERS, BSDFGuide, Guide, default_proposal
+from .guides.parameters import (RULES, SAMPLERS, GridParameters, QuadtreeGridParameters, SDTreeParameters,
+                                with_overrides)
+
+if TYPE_CHECKING:
+    from .guides import Guide
 
 
 class UnknownMethod(GuidingError):
     pass
 
 
-#: The paper's configurations (S = 8, D = 16). Every ``{rule}-{sampler}`` pair is a method too, and any grid
-#: method takes resolution overrides as a suffix: ``ours-S4-D32``, ``mc-hemi_inv-S16``. ``ours-uniform-proposals`` is
-#: ``ours`` with the paper's rejection loop (the same target, about five times the proposals; see GridGuide).
+@dataclass(frozen=True)
+class Method:
+    """A named guide configuration: which guide class (by module and name, imported when built) and its
+    parameters."""
+
+    module: str
+    guide_class: str
+    parameters: object = None     # the guide's parameter dataclass; None for BSDF sampling
+
+    def build(self, name: str, overrides: dict):
+        from importlib import import_module
+
+        guide_class = getattr(import_module(self.module, __package__), self.guide_class)
+        if self.parameters is None:
+            if overrides:
+                raise ValueError(f"method '{name}' takes no parameters, got {', '.join(sorted(overrides))}")
+            return guide_class()
+        return guide_class(with_overrides(self.parameters, overrides), name=name)
+
+
+def _grid(**parameters) -> Method:
+    return Method(".guides.grid", "GridGuide", GridParameters(**parameters))
+
+
+#: The paper's configurations (S = 8, D = 16), the baselines, and every rule × sampler. ``ours-uniform-proposals``
+#: is ``ours`` with the paper's rejection loop (the same target, about five times the proposals; see GridGuide).
 #: ``{rule}-hemi_inv-pure`` is the paper's hemi_inv without the BSDF share of ours (heavy-tailed; not in the tables).
-GRID_METHODS = {
-    "ours": {"rule": "sarsa", "sampler": "hemi_rej_plus"},
-    "ours-uniform-proposals": {"rule": "sarsa", "sampler": "hemi_rej_plus", "proposal": "uniform"},
-    "ours-no-rejopt": {"rule": "sarsa", "sampler": "hemi_rej"},
-    "ours-expected": {"rule": "expected_sarsa", "sampler": "hemi_rej_plus"},
-    **{f"{rule}-{sampler}": {"rule": rule, "sampler": sampler} for rule in RULES for sampler in SAMPLERS},
-    **{f"{rule}-hemi_inv-pure": {"rule": rule, "sampler": "hemi_inv", "bsdf_fraction": 0.0} for rule in RULES},
+METHODS: dict[str, Method] = {
+    "brdf": Method(".guides.bsdf", "BSDFGuide"),
+    "sdtree": Method(".guides.sdtree", "SDTreeGuide", SDTreeParameters()),
+    "quadtree-grid": Method(".guides.sdtree", "QuadtreeGridGuide", QuadtreeGridParameters()),
+    "ours": _grid(rule="sarsa", sampler="hemi_rej_plus"),
+    "ours-uniform-proposals": _grid(rule="sarsa", sampler="hemi_rej_plus", proposal="uniform"),
+    "ours-no-rejopt": _grid(rule="sarsa", sampler="hemi_rej"),
+    "ours-expected": _grid(rule="expected_sarsa", sampler="hemi_rej_plus"),
+    **{f"{rule}-{sampler}": _grid(rule=rule, sampler=sampler) for rule in RULES for sampler in SAMPLERS},
+    **{f"{rule}-hemi_inv-pure": _grid(rule=rule, sampler="hemi_inv", bsdf_fraction=0.0) for rule in RULES},
 }
-_OVERRIDES = re.compile(r"^(?P<base>.+?)(?:-S(?P<S>\d+))?(?:-D(?P<D>\d+))?$")
-
-def _sdtree(cls_name: str) -> Callable[..., Guide]:
-    def build(**parameters) -> Guide:
-        from .guides import sdtree
-
-        return getattr(sdtree, cls_name)(**parameters)
-    return build
-
-
-_FACTORIES: dict[str, Callable[..., Guide]] = {
-    "brdf": BSDFGuide,
-    "sdtree": _sdtree("SDTreeGuide"),
-    "quadtree-grid": _sdtree("QuadtreeGridGuide"),
-}
+_SHORTHAND = re.compile(r"^(?P<base>.+?)(?:-S(?P<S>\d+))?(?:-D(?P<D>\d+))?$")
 
 
 def method_names() -> list[str]:
-    return sorted([*_FACTORIES, *GRID_METHODS])
+    return sorted(METHODS)
 
 
-def grid_parameters(name: str) -> dict | None:
-    """The grid guide's parameters for a grid method name (None for other names); no variant needed."""
-    match = _OVERRIDES.match(name)
-    if not match or match["base"] not in GRID_METHODS:
-        return None
-    S, D = int(match["S"] or 8), int(match["D"] or 16)
-    if not (1 <= S <= 256 and 1 <= D <= 256):
-        raise UnknownMethod(f"method '{name}': S and D must be in 1..256")
-    method = GRID_METHODS[match["base"]]
-    return {"spatial_resolution": S, "directional_resolution": D,
-            "proposal": default_proposal(method["sampler"]), **method, "name": name}
+def resolve(name: str) -> Method:
+    """The :class:`Method` that ``name`` stands for, resolution shorthand applied (UnknownMethod if none)."""
+    if name in METHODS:
+        return METHODS[name]
+    match = _SHORTHAND.match(name)
+    base = METHODS.get(match["base"]) if match and (match["S"] or match["D"]) else None
+    resolution = {}
+    if isinstance(base.parameters if base else None, GridParameters):
+        resolution = {"spatial_resolution": match["S"], "directional_resolution": match["D"]}
+    elif isinstance(base.parameters if base else None, QuadtreeGridParameters) and not match["D"]:
+        resolution = {"spatial_resolution": match["S"]}
+    if not resolution:
+        raise UnknownMethod(f"unknown method '{name}' (known: {', '.join(method_names())}; grid methods take "
+                            "-S<n>-D<n> suffixes, quadtree-grid -S<n>)")
+    try:
+        parameters = replace(base.parameters, **{k: int(v) for k, v in resolution.items() if v is not None})
+    except ValueError as error:
+        raise UnknownMethod(f"method '{name}': {error}") from None
+    return replace(base, parameters=parameters)
+
+
+def grid_parameters(name: str) -> GridParameters | None:
+    """The grid guide's parameters for a grid method name (None for other methods); no variant needed."""
+    parameters = resolve(name).parameters
+    return parameters if isinstance(parameters, GridParameters) else None
 
 
 #: Memory a guide's tables may take unless told otherwise: ``GUIDING_MEMORY_LIMIT`` (bytes, or a size such as
@@ -98,9 +135,9 @@ def table_bytes(name: str) -> int | None:
         return None
     from .guides.grid_record import RadianceRecord, table_needs
 
-    needs = table_needs(parameters["rule"], parameters["sampler"], parameters["proposal"])
-    return RadianceRecord.planned_bytes(parameters["spatial_resolution"], parameters["directional_resolution"],
-                                        **needs)
+    needs = table_needs(parameters.rule, parameters.sampler, parameters.proposal)
+    return RadianceRecord.planned_bytes(parameters.spatial_resolution, parameters.directional_resolution,
+                                        parameters.normal_resolution, **needs)
 
 
 def check_memory(name: str, limit: int | str | None = None) -> None:
@@ -109,7 +146,7 @@ def check_memory(name: str, limit: int | str | None = None) -> None:
     size, allowed = table_bytes(name), memory_limit(limit)
     if size is not None and size > allowed:
         parameters = grid_parameters(name)
-        S, D = parameters["spatial_resolution"], parameters["directional_resolution"]
+        S, D = parameters.spatial_resolution, parameters.directional_resolution
         raise GuidingError(f"method '{name}' needs {format_size(size)} for its tables (S = {S}, D = {D}: {S ** 3} "
                            f"cells x {2 * D * D} direction bins), over the memory limit of {format_size(allowed)}; "
                            f"lower S or D, or raise the limit (--memory-limit or ${MEMORY_LIMIT_VARIABLE})")
@@ -118,19 +155,14 @@ def check_memory(name: str, limit: int | str | None = None) -> None:
 def check_method(name: str, memory_limit: int | str | None = None) -> None:
     """Raise UnknownMethod unless ``name`` names a method, and GuidingError if its tables would exceed the memory
     limit (:func:`check_memory`). Cheap: builds nothing, needs no variant."""
-    if name not in _FACTORIES and grid_parameters(name) is None:
-        raise UnknownMethod(f"unknown method '{name}' (known: {', '.join(method_names())}; grid methods take "
-                            "-S<n>-D<n> suffixes)")
+    resolve(name)
     check_memory(name, memory_limit)
 
 
 def make_guide(name: str, memory_limit: int | str | None = None, **overrides) -> Guide:
-    """A fresh guide for method ``name``, with its constructor's parameters ``overrides`` changed (for example
+    """A fresh guide for method ``name``, with its parameters ``overrides`` changed (for example
     ``make_guide("sarsa-hemi_inv", bsdf_fraction=0)``); refused (GuidingError) if its tables would exceed
     ``memory_limit`` (default: :func:`memory_limit`)."""
-    check_method(name, memory_limit)
-    if name in _FACTORIES:
-        return _FACTORIES[name](**overrides)
-    from .guides.grid import GridGuide
-
-    return GridGuide(**{**grid_parameters(name), **overrides})
+    method = resolve(name)
+    check_memory(name, memory_limit)
+    return method.build(name, overrides)

@@ -606,10 +606,10 @@ def _grid_guide(method: str, S: int = 2, D: int = 4, min_exploration: float | No
     from .guides.grid import GridGuide
     from .methods import grid_parameters
 
-    parameters = {**grid_parameters(method), "spatial_resolution": S, "directional_resolution": D}
+    overrides = {"spatial_resolution": S, "directional_resolution": D}
     if min_exploration is not None:
-        parameters["min_exploration"] = min_exploration
-    guide = GridGuide(**parameters)
+        overrides["min_exploration"] = min_exploration
+    guide = GridGuide(grid_parameters(method), **overrides)
     guide.record_table.set_bounds(mi.BoundingBox3f(mi.ScalarPoint3f(0), mi.ScalarPoint3f(1)))
     return guide
 
@@ -1561,7 +1561,7 @@ def memory_limit_refusal() -> dict:
     for rule in RULES:
         for sampler in SAMPLERS:
             for proposal in PROPOSALS:
-                built = GridGuide(2, 3, rule=rule, sampler=sampler, proposal=proposal).record_table.memory_bytes()
+                built = GridGuide(spatial_resolution=2, directional_resolution=3, rule=rule, sampler=sampler, proposal=proposal).record_table.memory_bytes()
                 planned = RadianceRecord.planned_bytes(2, 3, **table_needs(rule, sampler, proposal))
                 check(planned == built, f"{rule}-{sampler} ({proposal}): planned {planned} bytes, built {built}")
 

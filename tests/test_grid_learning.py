@@ -56,7 +56,7 @@ def _recorded(guide):
 
 
 def test_monte_carlo_walks_back_with_the_path_weights(floor):
-    guide = GridGuide(4, 4, rule="mc", sampler="hemi_rej_plus")
+    guide = GridGuide(spatial_resolution=4, directional_resolution=4, rule="mc", sampler="hemi_rej_plus")
     (first, second), _ = _run_path(guide, floor)
     expected_second = (1 + 2 + 3) / 3                                             # Le(v3)
     expected_first = np.mean(np.array([0.1] * 3) + np.array([0.8, 0.4, 0.6]) * [1, 2, 3])  # Le(v2) + w2·Le(v3)
@@ -67,11 +67,12 @@ def test_monte_carlo_walks_back_with_the_path_weights(floor):
 
 
 def test_sarsa_bootstraps_from_q_at_the_next_vertex(floor):
-    guide = GridGuide(4, 4, rule="sarsa", sampler="hemi_rej_plus")
+    guide = GridGuide(spatial_resolution=4, directional_resolution=4, rule="sarsa", sampler="hemi_rej_plus")
     q_next = 2.5
     record = guide.record_table
     record.set_bounds(floor.bbox())
-    (first, second), _ = _run_path(GridGuide(4, 4, rule="sarsa", sampler="hemi_rej_plus"), floor)  # indices only
+    indexer = GridGuide(spatial_resolution=4, directional_resolution=4, rule="sarsa", sampler="hemi_rej_plus")
+    (first, second), _ = _run_path(indexer, floor)  # indices only
     dr.scatter(record.q, q_next, mi.UInt32(second))
     _run_path(guide, floor)
     recorded = _recorded(guide)
@@ -81,7 +82,7 @@ def test_sarsa_bootstraps_from_q_at_the_next_vertex(floor):
 
 
 def test_expected_sarsa_reads_the_memoised_integral(floor):
-    guide = GridGuide(4, 4, rule="expected_sarsa", sampler="hemi_rej_plus")
+    guide = GridGuide(spatial_resolution=4, directional_resolution=4, rule="expected_sarsa", sampler="hemi_rej_plus")
     record = guide.record_table
     record.set_bounds(floor.bbox())
     v2 = _vertex(floor, 0.5, 0.5)
@@ -99,7 +100,7 @@ def test_expected_sarsa_reads_the_memoised_integral(floor):
 @pytest.mark.parametrize("rule", ["mc", "sarsa"])
 def test_segment_that_is_not_traced_records_nothing(floor, rule):
     """A guided direction below the surface (weight 0, path ends) leaves its own (cell, bin) untouched."""
-    guide = GridGuide(4, 4, rule=rule, sampler="hemi_rej_plus")
+    guide = GridGuide(spatial_resolution=4, directional_resolution=4, rule=rule, sampler="hemi_rej_plus")
     record = guide.record_table
     record.set_bounds(floor.bbox())
     si = _vertex(floor, 0.0, 0.0)
@@ -111,7 +112,7 @@ def test_segment_that_is_not_traced_records_nothing(floor, rule):
 
 
 def test_running_mean_and_exploration():
-    guide = GridGuide(1, 1, rule="sarsa", sampler="sphere_inv")
+    guide = GridGuide(spatial_resolution=1, directional_resolution=1, rule="sarsa", sampler="sphere_inv")
     record = guide.record_table
     record.acc_sum = mi.Float64([6.0, 0.0])
     record.acc_count = mi.Float64([3.0, 0.0])

@@ -40,14 +40,10 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from . import PROPOSALS, RULES, SAMPLERS, default_proposal
 from .base import Guide, UpdateResult
-from .grid_record import MIN_EXPLORATION, RadianceRecord, table_needs
+from .grid_record import RadianceRecord, table_needs
+from .parameters import GridParameters, with_overrides
 from .vertex_log import NO_RECORD, VertexLog, walk_backward
-
-#: Least BSDF share of the rejection samplers (module docstring): it bounds hemi_rej's weight by 10·ρ (measured at
-#: door-ajar's vertices, results/bounce_weights.md: second moment 1.8·ρ², against 1.9 at 0.05 and 1.6 at 0.2).
-MIN_BSDF_SHARE = 0.1
 
 
 @dataclass
@@ -100,45 +96,22 @@ class GridGuide(Guide):
     """Kim & Kim's guide: a ``S³ × 2·D²`` radiance record, a learning rule and a sampler.
 
     Parameters:
-      spatial_resolution: S (default 8).
-      directional_resolution: D (default 16, i.e. 512 bins).
-      rule: ``mc`` | ``sarsa`` | ``expected_sarsa``.
-      sampler: ``sphere_inv`` | ``hemi_inv`` | ``hemi_rej`` | ``hemi_rej_plus``.
-      normal_resolution: odd cube-map resolution of the memo tables' normal bins (default 5: 150 bins).
-      bsdf_fraction: BSDF share of the inversion samplers' mixture (default 0.5; 0 is the paper's pure sampler).
-      proposal: ``policy`` or ``uniform`` (the paper's loop): how rejection samplers propose. Default: ``policy``
-        for ``hemi_rej_plus``, ``uniform`` for ``hemi_rej``.
-      max_proposals: cap of the rejection loop (default 64).
-      min_bsdf_share: least BSDF share of the rejection samplers (default ``MIN_BSDF_SHARE``).
-      min_exploration: floor of the exploration share ε (default 0.1; 0 is the paper's schedule exactly).
-      name: the method name shown in tables.
+      parameters: the guide's :class:`~guiding.guides.parameters.GridParameters` (resolution, rule, sampler,
+        mixture shares; each documented there), default ``GridParameters()``.
+      name: the method name shown in tables (default ``{rule}-{sampler}``).
+      overrides: parameters changed from ``parameters`` (``GridGuide(rule="mc", spatial_resolution=4)``).
     """
 
-
-    def __init__(self, spatial_resolution: int = 8, directional_resolution: int = 16, rule: str = "sarsa",
-                 sampler: str = "hemi_rej_plus", normal_resolution: int = 5, bsdf_fraction: float = 0.5,
-                 proposal: str | None = None, max_proposals: int = 64, min_bsdf_share: float = MIN_BSDF_SHARE,
-                 min_exploration: float = MIN_EXPLORATION, name: str | None = None):
-        if rule not in RULES:
-            raise ValueError(f"unknown learning rule '{rule}' (choose from {', '.join(RULES)})")
-        if sampler not in SAMPLERS:
-            raise ValueError(f"unknown sampler '{sampler}' (choose from {', '.join(SAMPLERS)})")
-        if proposal is None:
-            proposal = default_proposal(sampler)
-        if proposal not in PROPOSALS:
-            raise ValueError(f"unknown proposal '{proposal}' (choose from {', '.join(PROPOSALS)})")
-        if not 0 <= bsdf_fraction < 1:
-            raise ValueError(f"bsdf_fraction must be in [0, 1), got {bsdf_fraction}")
-        if not 0 < min_bsdf_share <= 1:
-            raise ValueError(f"min_bsdf_share must be in (0, 1], got {min_bsdf_share}")
-        self.rule, self.sampler, self.proposal = rule, sampler, proposal
-        self.name = name or f"{rule}-{sampler}"
-        self.bsdf_fraction = bsdf_fraction
-        self.max_proposals = max_proposals
-        self.min_bsdf_share = min_bsdf_share
+    def __init__(self, parameters: GridParameters | None = None, name: str | None = None, **overrides):
+        self.parameters = p = with_overrides(parameters or GridParameters(), overrides)
+        self.rule, self.sampler, self.proposal = p.rule, p.sampler, p.proposal
+        self.name = name or f"{p.rule}-{p.sampler}"
+        self.bsdf_fraction = p.bsdf_fraction
+        self.max_proposals = p.max_proposals
+        self.min_bsdf_share = p.min_bsdf_share
         self.record_table = RadianceRecord(
-            spatial_resolution, directional_resolution, normal_resolution, **table_needs(rule, sampler, proposal),
-            min_exploration=min_exploration)
+            p.spatial_resolution, p.directional_resolution, p.normal_resolution,
+            **table_needs(p.rule, p.sampler, p.proposal), min_exploration=p.min_exploration)
         self.trained = False
         self._mc_log: VertexLog | None = None      # the pass's vertices (rule mc)
         self._reset_counters()

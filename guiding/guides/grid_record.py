@@ -24,6 +24,7 @@ import mitsuba as mi
 
 from ..directions import NormalBins, SphereBins
 from .grid_cells import GridCells
+from .parameters import MIN_EXPLORATION
 
 #: Added to Q before normalising, so that no bin has zero probability (method.md §4).
 Q_OFFSET = 1e-6
@@ -50,10 +51,6 @@ def quadrature_points(directional_resolution: int) -> int:
 REACHABLE_FLOOR = 0.01
 
 
-#: Floor of the exploration share ε. The paper's schedule alone drives ε to 1e-10 by 1000 spp; unexplored bins
-#: then get probabilities below float32 resolution in the CDFs, are never sampled, and the image is biased
-#: (measured: −20 % image mean on `cornell` with hemi_inv). With the floor every bin keeps ≥ ε_min/B.
-MIN_EXPLORATION = 0.1
 
 
 def table_needs(rule: str, sampler: str, proposal: str) -> dict[str, bool]:

@@ -32,6 +32,7 @@ import numpy as np
 from .base import Guide, NoPathState, UpdateResult
 from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
 from .grid_cells import GridCells
+from .parameters import QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
 from .stree import STree, iteration_length, stree_locate
 from .vertex_log import NO_RECORD, VertexLog, walk_backward
 
@@ -51,14 +52,13 @@ class _TreeGuide(Guide):
     ``self._recording`` (:class:`DeviceForest`), and their update rule.
     """
 
-    def __init__(self, bsdf_fraction: float = 0.5, rho: float = 0.01, dtree_max_depth: int = 20,
-                 max_nodes: int | None = None):
-        if not 0 <= bsdf_fraction < 1:
-            raise ValueError(f"bsdf_fraction must be in [0, 1), got {bsdf_fraction}")
-        self.bsdf_fraction = float(bsdf_fraction)
-        self.rho = float(rho)
-        self.dtree_max_depth = int(dtree_max_depth)
-        self.max_nodes = max_nodes
+    def __init__(self, parameters: TreeParameters, name: str | None):
+        self.parameters = parameters
+        self.name = name or type(self).name
+        self.bsdf_fraction = parameters.bsdf_fraction
+        self.rho = parameters.rho
+        self.dtree_max_depth = parameters.dtree_max_depth
+        self.max_nodes = parameters.max_nodes
         self._logs: list[VertexLog] = []                 # the passes rendered since the last update
         self._log_bytes = 0
         self._sampling: DeviceForest | None = None
@@ -201,10 +201,12 @@ class _TreeGuide(Guide):
 class SDTreeGuide(_TreeGuide):
     """Müller et al. 2017's SD-tree (see the module docstring).
 
-    Parameters: ``c`` (S-tree split constant, 12000), ``rho`` (D-tree subdivision share, 0.01),
-    ``dtree_max_depth`` (20), ``bsdf_fraction`` (0.5), ``max_nodes`` (cap on the nodes of one D-tree; none),
-    ``base_spp`` (spp of iteration 0, 8 = one default pass; iteration ``k`` spans ``base_spp·2^k`` spp),
-    ``budget_spp`` (optional: the last iteration then runs to the end of the budget and records nothing).
+    Parameters:
+      parameters: :class:`~guiding.guides.parameters.SDTreeParameters` (``c``, ``rho``, ``dtree_max_depth``,
+        ``bsdf_fraction``, ``max_nodes``, ``base_spp``, ``budget_spp``; each documented there), default
+        ``SDTreeParameters()``.
+      name: the method name shown in tables (default ``sdtree``).
+      overrides: parameters changed from ``parameters`` (``SDTreeGuide(c=1000)``).
 
     S-tree threshold: a leaf splits when the vertices recorded in it during iteration ``k`` exceed
     ``c·sqrt(spp_k)``, ``spp_k = base_spp·2^k`` the spp of that iteration. This is the paper's ``c·sqrt(2^k)``
@@ -219,14 +221,11 @@ class SDTreeGuide(_TreeGuide):
 
     name = "sdtree"
 
-    def __init__(self, c: float = 12000.0, rho: float = 0.01, dtree_max_depth: int = 20, bsdf_fraction: float = 0.5,
-                 base_spp: int = 8, budget_spp: int | None = None, max_nodes: int | None = None):
-        super().__init__(bsdf_fraction, rho, dtree_max_depth, max_nodes)
-        if base_spp < 1:
-            raise ValueError(f"base_spp must be >= 1, got {base_spp}")
-        self.c = float(c)
-        self.base_spp = int(base_spp)
-        self.budget_spp = budget_spp
+    def __init__(self, parameters: SDTreeParameters | None = None, name: str | None = None, **overrides):
+        super().__init__(with_overrides(parameters or SDTreeParameters(), overrides), name)
+        self.c = self.parameters.c
+        self.base_spp = self.parameters.base_spp
+        self.budget_spp = self.parameters.budget_spp
         self._recording_on = True
 
     # ------------------------------------------------------------------------------------ schedule
@@ -344,17 +343,18 @@ class QuadtreeGridGuide(_TreeGuide):
     the new quadrants); nothing is merged. Energies accumulate over the whole render and the trees are refreshed
     after every pass (the same structure records and samples).
 
-    Parameters: ``S`` (cells per axis of the grid, :class:`~guiding.guides.grid_cells.GridCells`; 8), ``rho``
-    (D-tree subdivision share, 0.01), ``dtree_max_depth`` (20), ``bsdf_fraction`` (0.5), ``max_nodes`` (cap on the
-    nodes of one D-tree; none).
+    Parameters:
+      parameters: :class:`~guiding.guides.parameters.QuadtreeGridParameters` (``spatial_resolution`` S, ``rho``,
+        ``dtree_max_depth``, ``bsdf_fraction``, ``max_nodes``), default ``QuadtreeGridParameters()``.
+      name: the method name shown in tables (default ``quadtree-grid``).
+      overrides: parameters changed from ``parameters`` (``QuadtreeGridGuide(spatial_resolution=4)``).
     """
 
     name = "quadtree-grid"
 
-    def __init__(self, S: int = 8, rho: float = 0.01, dtree_max_depth: int = 20, bsdf_fraction: float = 0.5,
-                 max_nodes: int | None = None):
-        super().__init__(bsdf_fraction, rho, dtree_max_depth, max_nodes)
-        self.S = int(S)
+    def __init__(self, parameters: QuadtreeGridParameters | None = None, name: str | None = None, **overrides):
+        super().__init__(with_overrides(parameters or QuadtreeGridParameters(), overrides), name)
+        self.S = self.parameters.spatial_resolution
         self._cells = GridCells(self.S)
 
     def prepare(self, scene: mi.Scene) -> None:

@@ -1,0 +1,152 @@
+"""The parameters of each guide, as typed values with their defaults (one dataclass per guide).
+
+A guide is built from its parameters (``GridGuide(GridParameters(rule="mc"))``, or with keyword overrides,
+``GridGuide(rule="mc")``); a method of :mod:`guiding.methods` is a name for a guide class and one of these values.
+They are plain dataclasses: they can be built, checked and compared before a Mitsuba variant is set.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+RULES = ("mc", "sarsa", "expected_sarsa")
+SAMPLERS = ("sphere_inv", "hemi_inv", "hemi_rej", "hemi_rej_plus")
+#: How the rejection samplers propose directions (the paper's ``uniform``, or our faster ``policy``).
+PROPOSALS = ("policy", "uniform")
+
+#: Least BSDF share of the rejection samplers (see :mod:`guiding.guides.grid`): it bounds hemi_rej's weight by 10·ρ
+#: (measured at door-ajar's vertices, results/bounce_weights.md: second moment 1.8·ρ², against 1.9 at 0.05 and 1.6
+#: at 0.2).
+MIN_BSDF_SHARE = 0.1
+#: Floor of the exploration share ε of the grid policy. The paper's schedule alone drives ε to 1e-10 by 1000 spp;
+#: unexplored bins then get probabilities below float32 resolution in the CDFs, are never sampled, and the image is
+#: biased (measured: −20 % image mean on `cornell` with hemi_inv). With the floor every bin keeps ≥ ε_min/B.
+MIN_EXPLORATION = 0.1
+
+
+def default_proposal(sampler: str) -> str:
+    """The proposal a rejection sampler uses unless told otherwise: ``policy`` for hemi_rej_plus, else ``uniform``."""
+    return "policy" if sampler == "hemi_rej_plus" else "uniform"
+
+
+def _check(condition: bool, message: str) -> None:
+    if not condition:
+        raise ValueError(message)
+
+
+def with_overrides(parameters, overrides: dict):
+    """``parameters`` with the fields in ``overrides`` replaced (a ValueError names an unknown field)."""
+    unknown = sorted(set(overrides) - set(parameters.__dataclass_fields__))
+    _check(not unknown, f"unknown parameter(s) {', '.join(unknown)} of {type(parameters).__name__} (known: "
+                        f"{', '.join(parameters.__dataclass_fields__)})")
+    return replace(parameters, **overrides)
+
+
+@dataclass(frozen=True)
+class GridParameters:
+    """Kim & Kim's grid guide (:class:`~guiding.guides.grid.GridGuide`): a ``S³ × 2·D²`` radiance record, a learning
+    rule and a sampler.
+
+    Parameters:
+      spatial_resolution: S, cells per axis of the grid over the scene's bounding box (default 8).
+      directional_resolution: D, the direction bins are 2·D² (default 16: 512 bins).
+      rule: ``mc`` | ``sarsa`` | ``expected_sarsa``.
+      sampler: ``sphere_inv`` | ``hemi_inv`` | ``hemi_rej`` | ``hemi_rej_plus``.
+      normal_resolution: odd cube-map resolution of the memo tables' normal bins (default 5: 150 bins).
+      bsdf_fraction: BSDF share of the inversion samplers' mixture (default 0.5; 0 is the paper's pure sampler).
+      proposal: ``policy`` or ``uniform`` (the paper's loop): how rejection samplers propose. Default (None):
+        ``policy`` for ``hemi_rej_plus``, ``uniform`` for ``hemi_rej``.
+      max_proposals: cap of the rejection loop (default 64).
+      min_bsdf_share: least BSDF share of the rejection samplers (default :data:`MIN_BSDF_SHARE`).
+      min_exploration: floor of the exploration share ε (default :data:`MIN_EXPLORATION`; 0 is the paper's
+        schedule exactly).
+    """
+
+    spatial_resolution: int = 8
+    directional_resolution: int = 16
+    rule: str = "sarsa"
+    sampler: str = "hemi_rej_plus"
+    normal_resolution: int = 5
+    bsdf_fraction: float = 0.5
+    proposal: str | None = None
+    max_proposals: int = 64
+    min_bsdf_share: float = MIN_BSDF_SHARE
+    min_exploration: float = MIN_EXPLORATION
+
+    def __post_init__(self):
+        _check(self.rule in RULES, f"unknown learning rule '{self.rule}' (choose from {', '.join(RULES)})")
+        _check(self.sampler in SAMPLERS, f"unknown sampler '{self.sampler}' (choose from {', '.join(SAMPLERS)})")
+        if self.proposal is None:
+            object.__setattr__(self, "proposal", default_proposal(self.sampler))
+        _check(self.proposal in PROPOSALS,
+               f"unknown proposal '{self.proposal}' (choose from {', '.join(PROPOSALS)})")
+        _check(1 <= self.spatial_resolution <= 256 and 1 <= self.directional_resolution <= 256,
+               f"S and D must be in 1..256, got S = {self.spatial_resolution}, D = {self.directional_resolution}")
+        _check(self.normal_resolution >= 1 and self.normal_resolution % 2 == 1,
+               f"normal_resolution must be odd and >= 1, got {self.normal_resolution}")
+        _check(0 <= self.bsdf_fraction < 1, f"bsdf_fraction must be in [0, 1), got {self.bsdf_fraction}")
+        _check(0 < self.min_bsdf_share <= 1, f"min_bsdf_share must be in (0, 1], got {self.min_bsdf_share}")
+        _check(self.max_proposals >= 1, f"max_proposals must be >= 1, got {self.max_proposals}")
+        _check(0 <= self.min_exploration <= 1, f"min_exploration must be in [0, 1], got {self.min_exploration}")
+
+
+@dataclass(frozen=True)
+class TreeParameters:
+    """What the tree guides share: their D-trees and the BSDF share of their mixture.
+
+    Parameters:
+      rho: D-tree subdivision share: a leaf holding more than ``rho`` of its tree's energy splits (default 0.01).
+      dtree_max_depth: deepest D-tree level (default 20).
+      bsdf_fraction: BSDF share of the one-sample mixture with the D-tree (default 0.5, as Müller et al.).
+      max_nodes: cap on the nodes of one D-tree (default None: no cap).
+    """
+
+    rho: float = 0.01
+    dtree_max_depth: int = 20
+    bsdf_fraction: float = 0.5
+    max_nodes: int | None = None
+
+    def __post_init__(self):
+        _check(0 < self.rho <= 1, f"rho must be in (0, 1], got {self.rho}")
+        _check(self.dtree_max_depth >= 1, f"dtree_max_depth must be >= 1, got {self.dtree_max_depth}")
+        _check(0 <= self.bsdf_fraction < 1, f"bsdf_fraction must be in [0, 1), got {self.bsdf_fraction}")
+        _check(self.max_nodes is None or self.max_nodes >= 1, f"max_nodes must be >= 1, got {self.max_nodes}")
+
+
+@dataclass(frozen=True)
+class SDTreeParameters(TreeParameters):
+    """Müller et al. 2017's SD-tree (:class:`~guiding.guides.sdtree.SDTreeGuide`): the fields of
+    :class:`TreeParameters`, and
+
+    Parameters:
+      c: S-tree split constant: a leaf splits when iteration ``k`` recorded more than ``c·sqrt(spp_k)`` vertices in
+        it (default 12000).
+      base_spp: spp of iteration 0 (default 8, one default pass); iteration ``k`` spans ``base_spp·2^k`` spp.
+      budget_spp: the render's spp budget, if known (the renderer sets it): the last iteration then runs to the
+        end of the budget and records nothing.
+    """
+
+    c: float = 12000.0
+    base_spp: int = 8
+    budget_spp: int | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        _check(self.c > 0, f"c must be > 0, got {self.c}")
+        _check(self.base_spp >= 1, f"base_spp must be >= 1, got {self.base_spp}")
+
+
+@dataclass(frozen=True)
+class QuadtreeGridParameters(TreeParameters):
+    """Kim & Kim's "Quadtree" baseline (:class:`~guiding.guides.sdtree.QuadtreeGridGuide`): the fields of
+    :class:`TreeParameters`, and
+
+    Parameters:
+      spatial_resolution: S, cells per axis of the uniform grid, one D-tree each (default 8, as the grid guide).
+    """
+
+    spatial_resolution: int = 8
+
+    def __post_init__(self):
+        super().__post_init__()
+        _check(1 <= self.spatial_resolution <= 256, f"S must be in 1..256, got {self.spatial_resolution}")
