@@ -20,3 +20,9 @@ def cornell():
     from guiding.scenes import load_scene
 
     return load_scene("cornell", scale=0.125)
+
+
+def pytest_addoption(parser):
+    # Here rather than in tests/stress/conftest.py, so that the option is known whatever paths the run is given.
+    parser.addoption("--stress-report", metavar="PATH", default=None,
+                     help="write what the stress tests (tests/stress) checked and measured to PATH (Markdown)")
