@@ -1,6 +1,7 @@
 """``--stress-report PATH`` (tests/stress/conftest.py): the stress tests' outcomes and measured figures, written
 from the test run."""
 
+import ast
 import os
 import subprocess
 import sys
@@ -103,3 +104,14 @@ def test_report_of_a_real_stress_test(tmp_path):
     text = report.read_text()
     assert "**1 of 1 tests pass**" in text and "## bad input (`test_bad_input.py`)" in text
     assert "| pass (" in rows(text)["test_unwritable_output"] and "inputs=2" in rows(text)["test_unwritable_output"]
+
+
+@pytest.mark.parametrize("module", sorted(p.name for p in (TESTS / "stress").glob("test_*.py")))
+def test_every_stress_group_and_test_describes_itself(module):
+    """The report's text comes from docstrings: a group's summary and findings, and what each test checks."""
+    tree = ast.parse((TESTS / "stress" / module).read_text())
+    summary, _, findings = (ast.get_docstring(tree) or "").partition("\n\n")
+    assert summary and findings, f"{module}: the docstring needs a summary line and a paragraph of findings"
+    undescribed = [node.name for node in tree.body if isinstance(node, ast.FunctionDef)
+                   and node.name.startswith("test_") and not ast.get_docstring(node)]
+    assert not undescribed, f"{module}: tests without a docstring: {undescribed}"
