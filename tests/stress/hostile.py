@@ -1,4 +1,5 @@
-"""Hostile input for the grid guide's tables and samplers, and finders of what an update or a sampler got wrong.
+"""Hostile input for the guides: grid tables, extreme samples and synthetic paths, and finders of what an update or
+a sampler got wrong. (The SD-tree's own hostile forests are in `sdtree_parts.py`.)
 
 A guided estimator divides by learned densities, so one zero, denormal or NaN in a table could poison a whole
 sweep unnoticed: these helpers put the worst values a table, a sample or a path can hold where a guide reads them.
