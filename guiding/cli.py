@@ -1,4 +1,4 @@
-"""Command line: ``python -m guiding {render, reference, evaluate, bench, demo, validate, stress, scenes, methods}``.
+"""Command line: ``python -m guiding {render, reference, evaluate, bench, demo, validate, scenes, methods}``.
 
 Bad input ends with one line on stderr and a non-zero exit, before any output is written; an interrupted run
 (Ctrl-C: exit code 130) leaves no output files behind (they are written atomically, together, last of all).
@@ -135,13 +135,6 @@ def build_parser() -> argparse.ArgumentParser:
     validate.add_argument("--quick", action="store_true", help="smaller budgets (a smoke run)")
     _add_backend_options(validate)
 
-    stress = commands.add_parser("stress", help="numerical stability and bad-input cases, written to "
-                                 "results/stress.md")
-    stress.add_argument("--out", default="results", help="output folder of stress.md (default results)")
-    stress.add_argument("--cases", default=None, help="comma-separated case names (default: all)")
-    stress.add_argument("--variant", default="llvm_ad_rgb", help="the cases measure the CPU backend (default)")
-    stress.add_argument("--threads", type=_positive_int, default=2, help="CPU worker threads (default 2, as CI)")
-
     commands.add_parser("scenes", help="list the scenes on the search path")
     commands.add_parser("methods", help="list the method names")
     return parser
@@ -165,12 +158,12 @@ def _provenance(variant: str, threads: int | None) -> dict:
     import mitsuba as mi
 
     return {"variant": variant, "threads": dr.thread_count() if variant.startswith("llvm") else None,
-            "device": _device_name(variant), "host": socket.gethostname(), "platform": platform.platform(),
+            "device": device_name(variant), "host": socket.gethostname(), "platform": platform.platform(),
             "python": platform.python_version(), "mitsuba": mi.__version__, "drjit": dr.__version__,
             "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
 
 
-def _device_name(variant: str) -> str:
+def device_name(variant: str) -> str:
     if variant.startswith("cuda"):
         import subprocess
 
@@ -291,7 +284,7 @@ def _command_bench(args) -> None:
     out = _prepare_output_dir(args.out)
     from .bench import benchmark, target_table, write_table
 
-    device = _device_name(variant)
+    device = device_name(variant)
     tag = "gpu" if variant.startswith("cuda") else "cpu"
     frame = benchmark(scenes, [m for m in args.methods.split(",") if m], passes=args.passes)
     command = "python -m guiding bench" + (f" --variant {args.variant}" if args.variant != "auto" else "")
@@ -348,7 +341,7 @@ def _command_validate(args) -> None:
     from .validation import (UNBIASEDNESS_METHODS, UNBIASEDNESS_SCENES, bounce_weight_table, learning_table,
                              unbiasedness_table)
 
-    device = _device_name(variant)
+    device = device_name(variant)
     budgets = {name: (scale, 6, 8) if args.quick else (scale, passes, spp)
                for name, (scale, passes, spp) in UNBIASEDNESS_SCENES.items()}
     unbiased = pd.concat([unbiasedness_table(name, budget=budget) for name, budget in budgets.items()])
@@ -371,30 +364,6 @@ def _command_validate(args) -> None:
     print(learning.to_string(index=False))
 
 
-def _command_stress(args) -> None:
-    from .backend import set_variant
-
-    variant = set_variant(args.variant, args.threads)
-    from . import stress
-
-    names = [name for name in (args.cases or "").split(",") if name] or None
-    unknown = sorted(set(names or []) - set(stress.CASES))
-    if unknown:
-        raise GuidingError(f"unknown stress case(s) {', '.join(unknown)} (known: {', '.join(stress.CASES)})")
-    out = _prepare_output_dir(args.out)
-
-    def show(outcome) -> None:
-        print(f"{outcome.status:5} {outcome.case.name} ({outcome.seconds:.1f} s) {outcome.message}", flush=True)
-
-    outcomes = stress.run_cases(names, progress=show)
-    path = stress.write_report(outcomes, out / "stress.md", device=_device_name(variant),
-                               command="python -m guiding stress" + (f" --cases {args.cases}" if names else ""))
-    failed = [o.case.name for o in outcomes if o.status != "pass"]
-    print(f"{len(outcomes) - len(failed)} of {len(outcomes)} cases pass -> {path}")
-    if failed:
-        raise GuidingError(f"stress cases failed: {', '.join(failed)} (see {path})")
-
-
 def _command_scenes(args) -> None:
     from .scenes import available_scenes, search_path
 
@@ -410,8 +379,8 @@ def _command_methods(args) -> None:
 
 
 COMMANDS = {"render": _command_render, "reference": _command_reference, "evaluate": _command_evaluate,
-            "bench": _command_bench, "validate": _command_validate, "demo": _command_demo, "stress": _command_stress,
-            "scenes": _command_scenes, "methods": _command_methods}
+            "bench": _command_bench, "validate": _command_validate, "demo": _command_demo, "scenes": _command_scenes,
+            "methods": _command_methods}
 
 
 def _interrupted(error: BaseException) -> bool:

@@ -1,4 +1,5 @@
-"""Checks of a guide's sampler at the vertices of a real scene, for this project's tests and for a user's own guide.
+"""Checks of a guide's sampler, for this project's tests and for a user's own guide: at the vertices of a real
+scene, and its density at one synthetic vertex.
 
 A sampler that passes its chi-square test can still be heavy-tailed in a render: the density is right, but where
 it is far below ``f·cos`` the weight ``f·cos/p`` of a rare direction is huge, and a few paths carry the image.
@@ -9,10 +10,18 @@ after the guide has trained on the scene (:func:`train`).
     weights = single_bounce_weights(guide, vertices, samples=4096)
     weights.mean / weights.albedo      # ≈ 1 for an unbiased sampler
     weights.maximum / weights.albedo   # the single-bounce bound
+
+Before that, a sampler's density is checked where it is drawn: :class:`GuideAdapter` puts a guide at one synthetic
+vertex (:func:`diffuse_vertex`) and hands its sampler to Mitsuba's chi-square test, as ``mitsuba.chi2.BSDFAdapter``
+does for a BSDF:
+
+    adapter = GuideAdapter(guide, normal=(0, 0, 1))
+    passed, messages = chi_square(adapter.sample_func, adapter.pdf_func, sample_count=400_000, res=64, ires=32)
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import drjit as dr
@@ -120,3 +129,94 @@ def single_bounce_weights(guide: Guide, vertices: mi.SurfaceInteraction3f, sampl
         sums[rows], squares[rows], maxima[rows] = w.mean(1), (w ** 2).mean(1), w.max(1)
     albedo = np.array(dr.mean(vertices.bsdf().eval_diffuse_reflectance(vertices)), dtype=np.float64)
     return BounceWeights(albedo, sums, squares, maxima, samples)
+
+
+# =====================================================================================================================
+#  A guide's sampler at one synthetic vertex
+# =====================================================================================================================
+def diffuse_vertex(normal, size: int, position=(0.05, 0.05, 0.05)) -> tuple[mi.SurfaceInteraction3f, mi.BSDFPtr]:
+    """``size`` lanes of one surface interaction at ``position`` with shading ``normal``, reached from the normal's
+    side (``wi`` is the local +z), and a diffuse BSDF of albedo 0.5 for it."""
+    si = dr.zeros(mi.SurfaceInteraction3f, size)
+    si.p = mi.Point3f(*position)
+    si.n = mi.Normal3f(*(float(c) for c in normal))
+    si.sh_frame = mi.Frame3f(si.n)
+    si.wi = mi.Vector3f(0, 0, 1)
+    return si, mi.BSDFPtr(_diffuse_bsdf())
+
+
+@functools.lru_cache(maxsize=None)
+def _diffuse_bsdf() -> mi.BSDF:
+    # Kept alive here: a BSDFPtr does not own the object it points to.
+    return mi.load_dict({"type": "diffuse", "reflectance": 0.5})
+
+
+class ReplaySampler:
+    """A stand-in for ``mi.Sampler`` that hands out the dimensions of a chi-square test's sample, in order."""
+
+    def __init__(self, sample):
+        self.dims = [sample[i] for i in range(len(sample))]
+
+    def next_1d(self, active=True):
+        return self.dims.pop(0)
+
+    def next_2d(self, active=True):
+        return mi.Point2f(self.dims.pop(0), self.dims.pop(0))
+
+
+class GuideAdapter:
+    """``guide``'s sampler at a vertex made by :func:`diffuse_vertex`, in the form ``mitsuba.chi2.ChiSquareTest``
+    takes: ``sample_func`` maps the test's samples to the world directions ``guide.sample`` draws, ``pdf_func``
+    gives ``guide.pdf`` of world directions.
+
+    Parameters:
+      normal, position: the vertex (see :func:`diffuse_vertex`).
+      bsdf: the vertex's BSDF (a ``mi.BSDF``); the diffuse one of :func:`diffuse_vertex` by default.
+      replay: the guide draws the test's own sample dimensions, in order (:class:`ReplaySampler`; give the test the
+        ``sample_dim`` the guide consumes). By default every call draws from an independent sampler seeded with
+        ``seed`` and the test's sample only sets the number of lanes: a rejection sampler consumes a number of
+        dimensions no test can know in advance.
+    """
+
+    def __init__(self, guide: Guide, normal=(0, 0, 1), position=(0.05, 0.05, 0.05), bsdf: mi.BSDF | None = None,
+                 replay: bool = False, seed: int = 7):
+        self.guide, self.normal, self.position, self.bsdf = guide, normal, position, bsdf
+        self.replay, self.seed = replay, seed
+
+    def vertex(self, size: int) -> tuple[mi.SurfaceInteraction3f, mi.BSDFPtr]:
+        """The vertex, ``size`` lanes wide, and its BSDF."""
+        si, diffuse = diffuse_vertex(self.normal, size, self.position)
+        return si, diffuse if self.bsdf is None else mi.BSDFPtr(self.bsdf)
+
+    def draw(self, sample) -> tuple[mi.SurfaceInteraction3f, mi.BSDFSample3f, mi.Spectrum]:
+        """The vertex, and what ``guide.sample`` returns there for the test's ``sample``."""
+        size = dr.width(sample)
+        if self.replay:
+            sampler = ReplaySampler(sample)
+        else:
+            sampler = mi.load_dict({"type": "independent"})
+            sampler.seed(self.seed, size)
+        si, bsdf = self.vertex(size)
+        bs, weight = self.guide.sample(None, sampler, si, bsdf, mi.BSDFContext(), dr.full(mi.Bool, True, size))
+        return si, bs, weight
+
+    def sample_func(self, sample) -> mi.Vector3f:
+        si, bs, _ = self.draw(sample)
+        return si.to_world(bs.wo)
+
+    def pdf_func(self, wo: mi.Vector3f) -> mi.Float:
+        size = dr.width(wo)
+        si, bsdf = self.vertex(size)
+        return self.guide.pdf(si, bsdf, mi.BSDFContext(), si.to_local(wo), dr.full(mi.Bool, True, size))
+
+
+def chi_square(sample_func, pdf_func, domain=None, test_count: int = 1, **options) -> tuple[bool, str]:
+    """Mitsuba's chi-square test: do the samples of ``sample_func`` follow the density ``pdf_func`` reports? (It
+    also fails a density that does not integrate to 1.) ``domain`` is a sphere by default, ``test_count`` the
+    number of tests the caller runs (the significance level is Šidák-corrected for them) and ``options`` go to
+    ``ChiSquareTest`` (``sample_dim``, ``sample_count``, ``res``, ``ires``). Returns the verdict and the test's
+    messages, printing nothing."""
+    from mitsuba.chi2 import ChiSquareTest, SphericalDomain
+
+    test = ChiSquareTest(domain=domain or SphericalDomain(), sample_func=sample_func, pdf_func=pdf_func, **options)
+    return test.run(test_count=test_count, quiet=True), test.messages

@@ -15,20 +15,14 @@ THREADS = int(os.environ.get("GUIDING_TEST_THREADS", "2"))
 VARIANT = set_variant("llvm_ad_rgb", threads=THREADS)
 
 
-def _forest_from_nested_for_stress():
-    """guiding/stress.py builds its hand-written D-trees with ``Forest.from_nested``, which moved into the tests
-    (:func:`tree_helpers.nested_forest`); until stress.py moves into tests/ and calls that, its cases find it here."""
-    from guiding.guides.dtree import Forest
-    from tree_helpers import nested_forest
-
-    Forest.from_nested = staticmethod(nested_forest)
-
-
-_forest_from_nested_for_stress()
-
-
 @pytest.fixture(scope="session")
 def cornell():
     from guiding.scenes import load_scene
 
     return load_scene("cornell", scale=0.125)
+
+
+def pytest_addoption(parser):
+    # Here rather than in tests/stress/conftest.py, so that the option is known whatever paths the run is given.
+    parser.addoption("--stress-report", metavar="PATH", default=None,
+                     help="write what the stress tests (tests/stress) checked and measured to PATH (Markdown)")

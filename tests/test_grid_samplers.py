@@ -4,20 +4,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-from mitsuba.chi2 import ChiSquareTest, SphericalDomain
 
 from guiding.guides import PROPOSALS, SAMPLERS
 from guiding.guides.grid import GridGuide
-
-
-def _vertex_setup(guide: GridGuide, normal, size: int):
-    """A diffuse surface interaction at the centre of cell 0 with ``normal``, ``size`` lanes wide."""
-    si = dr.zeros(mi.SurfaceInteraction3f, size)
-    si.p = mi.Point3f(0.05, 0.05, 0.05)
-    si.n = mi.Normal3f(normal)
-    si.sh_frame = mi.Frame3f(si.n)
-    si.wi = mi.Vector3f(0, 0, 1)
-    return si
+from guiding.testing import GuideAdapter, chi_square
 
 
 def _trained_guide(sampler: str, proposal: str, D: int, table: str, normal) -> GridGuide:
@@ -62,24 +52,9 @@ NORMALS = {"tilted": (0.4929, 0.1870, 0.8498), "axis": (0.0, 0.0, 1.0)}
 def test_sampler_pdf_matches_samples(sampler, proposal, D, table, normal_name):
     normal = NORMALS[normal_name]
     guide = _trained_guide(sampler, proposal, D, table, normal)
-    bsdf = mi.load_dict({"type": "diffuse", "reflectance": 0.5})
-    ctx = mi.BSDFContext()
-
-    def sample_func(sample):
-        size = dr.width(sample)
-        sampler_ = mi.load_dict({"type": "independent"})
-        sampler_.seed(7, size)
-        si = _vertex_setup(guide, normal, size)
-        bs, _ = guide.sample(None, sampler_, si, mi.BSDFPtr(bsdf), ctx, dr.full(mi.Bool, True, size))
-        return si.to_world(bs.wo)
-
-    def pdf_func(wo):
-        size = dr.width(wo)
-        si = _vertex_setup(guide, normal, size)
-        return guide.pdf(si, mi.BSDFPtr(bsdf), ctx, si.to_local(wo), dr.full(mi.Bool, True, size))
-
+    adapter = GuideAdapter(guide, normal)
     # 64 integration points per cell side: the densities step along great circles that no cell boundary follows
     # (bin edges, the uniform share's horizon), and 32 integrated them 0.15 % low (a false rejection at p = 3e-5).
-    test = ChiSquareTest(domain=SphericalDomain(), sample_func=sample_func, pdf_func=pdf_func, sample_dim=2,
-                         sample_count=400_000, res=64, ires=64)
-    assert test.run(test_count=TEST_COUNT), test.messages
+    passed, messages = chi_square(adapter.sample_func, adapter.pdf_func, test_count=TEST_COUNT, sample_count=400_000,
+                                  res=64, ires=64)
+    assert passed, messages

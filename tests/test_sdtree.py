@@ -5,12 +5,13 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-from mitsuba.chi2 import ChiSquareTest, LineDomain, SphericalDomain
+from mitsuba.chi2 import LineDomain
 
 from guiding.guides.dtree import SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
 from guiding.guides.sdtree import QuadtreeGridGuide, SDTreeGuide
 from guiding.guides.stree import STree, iteration_length, stree_locate
 from guiding.integrator import GuidedPathIntegrator
+from guiding.testing import GuideAdapter, ReplaySampler, chi_square, diffuse_vertex
 from guiding.validation import Z_LIMIT, pass_means, z_scores
 from test_render import FakeClock
 from tree_helpers import doubling_schedule, lookup_np, nested_forest
@@ -59,26 +60,6 @@ def _leaf_energies(tree):
             yield q
 
 
-class ReplaySampler:
-    """A stand-in for mi.Sampler that hands out the dimensions of a chi-square test's sample, in order."""
-
-    def __init__(self, sample):
-        self.dims = [sample[i] for i in range(len(sample))]
-
-    def next_1d(self, active=True):
-        return self.dims.pop(0)
-
-    def next_2d(self, active=True):
-        return mi.Point2f(self.dims.pop(0), self.dims.pop(0))
-
-
-def _chi2(sample_func, pdf_func, domain=None, **kwargs):
-    kwargs.setdefault("sample_count", 400_000)
-    test = ChiSquareTest(domain=domain or SphericalDomain(), sample_func=sample_func, pdf_func=pdf_func, **kwargs)
-    ok = test.run(quiet=True)
-    return ok, test.messages
-
-
 # =========================================================================================== chi-square
 @pytest.mark.parametrize("kind", ["shallow", "deep"])
 @pytest.mark.parametrize("seed", [0, 1])
@@ -103,7 +84,7 @@ def test_dtree_sampling_matches_density_on_the_sphere(kind, seed):
     def pdf_func(d):
         return device.pdf_dir(tree, d)
 
-    ok, messages = _chi2(sample_func, pdf_func, res=res, ires=3)
+    ok, messages = chi_square(sample_func, pdf_func, sample_count=400_000, res=res, ires=3)
     assert ok, messages
     assert nested_forest(trees).max_depth() == (3 if kind == "shallow" else 6)
 
@@ -135,8 +116,8 @@ def test_deep_dtree_leaf_frequencies_match_energies(seed):
     def pdf_func(x):
         return dr.gather(mi.Float, mi.Float(prob.astype(np.float32)), mi.UInt32(dr.floor(x)))
 
-    ok, messages = _chi2(sample_func, pdf_func, domain=LineDomain(bounds=[0.0, float(len(prob))]),
-                         sample_dim=2, res=len(prob), ires=2)
+    ok, messages = chi_square(sample_func, pdf_func, domain=LineDomain(bounds=[0.0, float(len(prob))]),
+                              sample_dim=2, sample_count=400_000, res=len(prob), ires=2)
     assert ok, messages
     # The two smallest leaves (side 2^-20) were sampled, and their density matches the host's.
     deepest = np.argsort(side)[:2]
@@ -166,12 +147,7 @@ def test_dtree_density_matches_host_lookup_everywhere():
 
 
 def _diffuse_vertex(size: int):
-    si = dr.zeros(mi.SurfaceInteraction3f, size)
-    si.p = mi.Point3f(0.3, 0.6, 0.2)
-    si.n = mi.Normal3f(0, 0, 1)
-    si.sh_frame = mi.Frame3f(si.n)
-    si.wi = mi.Vector3f(0, 0, 1)
-    return si
+    return diffuse_vertex((0, 0, 1), size, position=(0.3, 0.6, 0.2))[0]
 
 
 def _guide_with(forest: Forest, guide=None) -> SDTreeGuide:
@@ -190,14 +166,13 @@ def test_bsdf_mixture_matches_density_on_a_diffuse_surface(bsdf_dict):
     forest = nested_forest([random_tree(rng, 4, 0.6, zeros=0.2)])
     guide = _guide_with(forest)
     bsdf = mi.load_dict(bsdf_dict)
+    adapter = GuideAdapter(guide, position=(0.3, 0.6, 0.2), bsdf=bsdf, replay=True)
     ctx = mi.BSDFContext()
     checked = {}
 
     def sample_func(sample):
-        size = dr.width(sample)
-        si = _diffuse_vertex(size)
-        active = dr.full(mi.Bool, True, size)
-        bs, weight = guide.sample(None, ReplaySampler(sample), si, mi.BSDFPtr(bsdf), ctx, active)
+        si, bs, weight = adapter.draw(sample)
+        active = dr.full(mi.Bool, True, dr.width(sample))
         # the weight is f·cos / (mixture pdf), and bs.pdf is that mixture pdf
         value = bsdf.eval(ctx, si, bs.wo, active)
         pdf = guide.pdf(si, mi.BSDFPtr(bsdf), ctx, bs.wo, active)
@@ -207,12 +182,7 @@ def test_bsdf_mixture_matches_density_on_a_diffuse_surface(bsdf_dict):
         checked["pdf"] = np.isclose(bs.pdf.numpy(), pdf.numpy(), rtol=1e-4, atol=1e-6).mean() > 0.9999
         return si.to_world(bs.wo)
 
-    def pdf_func(d):
-        size = dr.width(d)
-        si = _diffuse_vertex(size)
-        return guide.pdf(si, mi.BSDFPtr(bsdf), ctx, si.to_local(d), dr.full(mi.Bool, True, size))
-
-    ok, messages = _chi2(sample_func, pdf_func, sample_dim=3, res=64, ires=33)
+    ok, messages = chi_square(sample_func, adapter.pdf_func, sample_dim=3, sample_count=400_000, res=64, ires=33)
     assert ok, messages
     assert checked == {"weight": True, "pdf": True}
 

@@ -36,7 +36,7 @@ Q_LIMIT = 1e30
 #: Quadrature points per bin side for the cosine integrals: at least QUADRATURE, and at least
 #: QUADRATURE_PER_HEMISPHERE/D, so that coarse bins get as many points per hemisphere as D = 16's (relative error
 #: of N about 1e-4 at an axis normal). With 8 per side at D = 1 (a bin per hemisphere), N at a +z normal was 3 % too
-#: large: a 3 % bias of the rejection samplers (the stress case `scene-with-one-cell-and-one-bin`).
+#: large: a 3 % bias of the rejection samplers (the stress test `test_scene_with_one_cell_and_one_bin`).
 QUADRATURE = 8
 QUADRATURE_PER_HEMISPHERE = 128
 #: Most quadrature points evaluated by one kernel (bounds the temporary memory of the cosine tables at ~100 MB).

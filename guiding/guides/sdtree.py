@@ -36,9 +36,6 @@ from .parameters import QuadtreeGridParameters, SDTreeParameters, TreeParameters
 from .stree import STree, iteration_length, stree_locate
 from .vertex_log import NO_RECORD, VertexLog, walk_backward
 
-# guiding/stress.py imports these from here; they live in dtree.py (until stress.py moves into tests/).
-from .dtree import dir_to_uv, uv_to_dir  # noqa: F401
-
 
 def _capacity(n: int) -> int:
     """The smallest power of two ≥ ``n``, at least 2 (the size of an accumulator for ``n`` entries)."""

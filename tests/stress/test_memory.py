@@ -1,0 +1,74 @@
+"""Memory: grid tables over the memory limit are refused before anything is allocated.
+
+A grid method whose tables would exceed the limit (default 8 GiB, `--memory-limit`, `$GUIDING_MEMORY_LIMIT`) is
+refused by `methods.check_method` before anything is allocated; `ours-S64-D64` used to start allocating 57 GiB.
+The SD-tree's tables grow while it learns and are not checked up front.
+"""
+
+import time
+
+import pytest
+
+from guiding.errors import GuidingError
+from guiding.guides import PROPOSALS, RULES, SAMPLERS
+from guiding.guides.grid import GridGuide
+from guiding.guides.grid_record import RadianceRecord, table_needs
+from guiding.methods import MEMORY_LIMIT_VARIABLE, check_method, format_size, make_guide, table_bytes
+from arrays import few
+from command_line import one_error_line, run_cli
+
+#: A table far beyond any memory limit: 64³ cells × 2·64² bins (the issue's example).
+OVERSIZED_METHOD = "ours-S64-D64"
+
+
+@pytest.mark.parametrize("rule", RULES)
+def test_planned_table_size_is_what_built_tables_report(rule, figures):
+    """The size planned before allocation (`RadianceRecord.planned_bytes`) equals what a built record reports, for
+    every sampler and proposal."""
+    for sampler in SAMPLERS:
+        for proposal in PROPOSALS:
+            built = GridGuide(spatial_resolution=2, directional_resolution=3, rule=rule, sampler=sampler,
+                              proposal=proposal).record_table.memory_bytes()
+            planned = RadianceRecord.planned_bytes(2, 3, **table_needs(rule, sampler, proposal))
+            assert planned == built, f"{sampler} ({proposal}): planned {planned} bytes, built {built}"
+    figures["configurations"] = len(SAMPLERS) * len(PROPOSALS)
+
+
+def test_table_over_the_limit_is_refused(figures):
+    """A table over the memory limit (ours-S64-D64: 56.6 GiB) is refused with one line giving the size it needs,
+    by `check_method` and by `make_guide`; a table exactly at the limit, or under a raised one, is allowed."""
+    size = table_bytes(OVERSIZED_METHOD)
+    figures.update(oversized_table=format_size(size), ours_table=format_size(table_bytes("ours")))
+    with pytest.raises(GuidingError) as refusal:
+        check_method(OVERSIZED_METHOD)
+    message = str(refusal.value)
+    assert "\n" not in message and format_size(size) in message, f"refusal message: {message!r}"
+    with pytest.raises(GuidingError):
+        make_guide(OVERSIZED_METHOD)
+    with pytest.raises(GuidingError):
+        check_method("ours", table_bytes("ours") - 1)
+    check_method("ours", table_bytes("ours"))
+    check_method(OVERSIZED_METHOD, 2 * size)
+
+
+def test_memory_limit_from_the_environment(monkeypatch, figures):
+    """`$GUIDING_MEMORY_LIMIT` sets the limit: 1M refuses `ours`."""
+    monkeypatch.setenv(MEMORY_LIMIT_VARIABLE, "1M")
+    figures["ours_table"] = format_size(table_bytes("ours"))
+    with pytest.raises(GuidingError):
+        check_method("ours")
+
+
+def test_command_line_refuses_a_table_over_the_limit(tmp_path, figures):
+    """The command line refuses a table over the limit with exit 2 and one line giving the size it needs, before
+    it creates the output folder; `--memory-limit 1M` refuses `ours`."""
+    out = tmp_path / "out"
+    start = time.perf_counter()
+    run = run_cli(["render", "--scene", "cornell", "--method", OVERSIZED_METHOD, "--spp", "1", "--out", str(out)])
+    figures["cli_refusal_seconds"] = round(time.perf_counter() - start, 3)
+    problems = one_error_line(run, f"needs {format_size(table_bytes(OVERSIZED_METHOD))}")
+    assert not problems, few(problems)
+    assert not out.exists(), "the output folder was created"
+    run = run_cli(["render", "--scene", "cornell", "--method", "ours", "--spp", "1", "--out", str(out),
+                   "--memory-limit", "1M"])
+    assert not one_error_line(run, "over the memory limit of 1.0 MiB"), f"--memory-limit 1M: {run.errors}"
