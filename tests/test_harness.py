@@ -147,6 +147,8 @@ def _row(experiment, scene, method, seed, mae, budget="spp1024", spp=1024, secon
     return {"experiment": experiment, "scene": scene, "method": method, "cli_method": method, "label": method.upper(),
             "seed": seed, "budget": budget, "scale": 0.5, "timed": experiment in ("equal_time", "convergence"),
             "mae": mae, "mae_hdr": mae * 2, "relmse": mae * 3, "nonfinite_pixels": 0 if mae is not None else 7,
+            **{name: None if mae is None else mae * k for k, name in enumerate(("mse", "relmse_trimmed", "smape",
+                                                                               "flip"), start=4)},
             "render_seconds": seconds, "stats": {"spp": spp, "seconds": seconds + 0.5, "resolution": [64, 32],
                                                  "hit_rate": 0.25, "compile_seconds": 0.5},
             "provenance": {"host": "box", "device": "CPU: test", "variant": "llvm_ad_rgb", "threads": 2},
@@ -165,8 +167,10 @@ def test_table1_layout_mean_over_seeds_and_paper_numbers():
             for S in (8, 4) for D in (16, 8) for seed in (0, 1)]
     cells, text, runs = tables.build(spec, rows)
     assert len(runs) == 8 and len(cells) == 4 and {"host", "device", "variant", "threads"} <= set(runs.columns)
+    assert {"flip", "mse", "smape", "relmse_trimmed", "mae_hdr", "relmse"} <= set(runs.columns) & set(cells.columns)
     cell = cells[(cells.S == 8) & (cells.D == 16)].iloc[0]
     assert cell.mae == pytest.approx(0.08 + 0.016 + 0.001) and cell.seeds == 2
+    assert cell.flip == pytest.approx(7 * cell.mae) and cell.mse == pytest.approx(4 * cell.mae)
     assert cell.paper_mae == pytest.approx(0.0347)
     assert "| S \\ D | 16 | 8 |" in text and "| **8** | 0.097 / 0.0347 |" in text
     assert "`box`: CPU: test" in text
