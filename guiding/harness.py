@@ -320,7 +320,7 @@ class Plan:
                                       "metrics": self.render_file(r, "metrics.json")} for r in chosen]})
         budget = runs[-1].budget
         budget_text = f"{int(budget.value)} spp" if budget.kind == "spp" else f"{budget.value:g} s"
-        return {"title": f"{experiment}: {budget_text}, seed {seed}; MAE under each crop",
+        return {"title": f"{experiment}: {budget_text}, seed {seed}",
                 "crop_fraction": self.config["figures"]["crop_fraction"], "rows": rows}
 
     def comparison_inputs(self, experiment: str) -> list[str]:

@@ -294,6 +294,107 @@ def test_figures_draw_from_synthetic_runs(tmp_path):
             assert image.format == "PNG" and min(image.size) > 100
 
 
+def _comparison_job(tmp_path, labels, crop=(0.25, 0.25, 0.5, 0.5)):
+    """Synthetic renders for a comparison figure: a reference with structure and noisier images of it."""
+    rng = np.random.default_rng(2)
+    reference = (rng.random((32, 48, 3)) + np.linspace(0, 2, 48)[None, :, None]).astype(np.float32)
+    imageio.write_exr(tmp_path / "ref.exr", reference)
+    entries = []
+    for i, label in enumerate(labels):
+        image = reference * rng.lognormal(0, 0.3 / (i + 1), reference.shape).astype(np.float32)
+        imageio.write_exr(tmp_path / f"{i}.exr", image)
+        (tmp_path / f"{i}.json").write_text(json.dumps({"mae": 0.5 + i}))
+        entries.append({"label": label, "image": str(tmp_path / f"{i}.exr"), "metrics": str(tmp_path / f"{i}.json")})
+    return {"title": "t", "crop_fraction": 0.3, "rows": [{"scene": "a", "reference": str(tmp_path / "ref.exr"),
+                                                          "crop": list(crop), "entries": entries}]}
+
+
+def test_comparison_shows_each_crops_own_mae_and_its_error_map(tmp_path):
+    from guiding.metrics import mae_tonemapped
+
+    job = _comparison_job(tmp_path, ["BRDF", "Ours"])
+    figure = figures.comparison_figure(job)
+    reference = imageio.read_exr(job["rows"][0]["reference"])
+    x, y, w, h = figures.crop_box(reference.shape, job["rows"][0]["crop"])
+    for i, entry in enumerate(job["rows"][0]["entries"]):
+        crop_ax = next(ax for ax in figure.axes if ax.get_title().startswith(entry["label"] + "\n"))
+        image = imageio.read_exr(entry["image"])
+        crop_mae = mae_tonemapped(image[y:y + h, x:x + w], reference[y:y + h, x:x + w])
+        assert crop_ax.get_xlabel() == f"MAE {crop_mae:.4f}"       # the crop's own MAE, under it
+        assert crop_ax.get_title() == f"{entry['label']}\nimage MAE {0.5 + i:.4f}"   # the image's, by the label
+        assert crop_ax.images[0].get_array().shape[:2] == (h, w)
+    maps = [ax for ax in figure.axes if ax.images and ax.images[0].get_cmap().name == "magma"]
+    assert len(maps) == 2 and all(ax.get_xlabel().startswith("FLIP 0.") for ax in maps)
+    assert all(ax.images[0].get_clim() == (0, 1) for ax in maps)
+    colorbars = [ax for ax in figure.axes if ax.get_ylabel() == "HDR-FLIP error"]
+    assert len(colorbars) == 1
+    assert "MAE under each crop" not in figure.get_suptitle()
+
+
+def test_comparison_of_many_methods_wraps_into_lines_of_readable_crops(tmp_path):
+    """Table 2's 15 methods: rows of at most MAX_COLUMNS crops, not one strip of tiny ones."""
+    job = _comparison_job(tmp_path, [f"M{i}" for i in range(15)])
+    figure = figures.comparison_figure(job)
+    width, height = figure.get_size_inches()
+    assert width / height < 4
+    crops = [ax for ax in figure.axes if ax.get_title().startswith("M")]
+    rows = {round(ax.get_position().y0, 3) for ax in crops}
+    assert len(crops) == 15 and len(rows) == 2 and max(len([a for a in crops if round(a.get_position().y0, 3) == r])
+                                                       for r in rows) == figures.MAX_COLUMNS
+    figure.savefig(tmp_path / "wrapped.png")
+    from PIL import Image
+
+    with Image.open(tmp_path / "wrapped.png") as png:
+        assert png.size[0] / png.size[1] < 4 and png.size[1] > 500
+
+
+def test_heatmap_panels_share_one_colour_scale(tmp_path):
+    pd.DataFrame([{"scene": scene, "S": s, "D": d, "mae": 0.01 * s / d + offset}
+                  for scene, offset in (("a", 0.0), ("b", 0.2)) for s in (8, 4) for d in (16, 8)]).to_csv(
+        tmp_path / "t1.csv", index=False)
+    figure = figures.heatmap_figure(tmp_path / "t1.csv")
+    panels = [ax for ax in figure.axes if ax.images]
+    assert [ax.get_title() for ax in panels] == ["ours: a", "ours: b", "paper (supplement Table 1)"]
+    limits = {ax.images[0].get_clim() for ax in panels}
+    assert len(limits) == 1
+    low, high = limits.pop()
+    assert (low, high) == pytest.approx((0.01 * 4 / 16, 0.2 + 0.01 * 8 / 8))   # ours' extremes, beyond the paper's
+    assert len(figure.axes) == len(panels) + 1          # one colour bar for all
+
+
+def _labelled_ticks(axis) -> list[str]:
+    """Texts of the labelled major ticks of a drawn axis that lie inside its view."""
+    low, high = sorted(axis.get_view_interval())
+    return [label.get_text() for location, label in zip(axis.get_majorticklocs(), axis.get_majorticklabels())
+            if low <= location <= high and label.get_text()]
+
+
+def test_every_convergence_axis_has_labelled_ticks(tmp_path):
+    """Log axes spanning less than a decade (the issue: no y numbers, an x axis showing only "10")."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    paths = []
+    for method, scale in (("brdf", 1.0), ("ours", 0.8)):
+        row = _row("convergence", "a", method, 0, 0.05, budget="30s", spp=256, seconds=30)
+        row["curve"] = [{"spp": s, "render_seconds": 3 * s / 8, "mae": scale * 0.07 * (s / 8) ** -0.6,
+                         "relmse": scale * (s / 8) ** -0.9} for s in (8, 16, 32, 64)]
+        paths.append(tmp_path / f"{method}.json")
+        paths[-1].write_text(json.dumps(row))
+    figure = figures.convergence_figure({"scenes": ["a"]}, [str(p) for p in paths])
+    FigureCanvasAgg(figure).draw()
+    axes = [ax for ax in figure.axes if ax.lines]
+    assert len(axes) == len(figures.CONVERGENCE_ROWS)
+    assert any(ax.get_yscale() == "log" and ax.get_ylim()[1] / ax.get_ylim()[0] < 10 for ax in axes)
+    for ax in axes:
+        assert len(_labelled_ticks(ax.xaxis)) >= 2 and len(_labelled_ticks(ax.yaxis)) >= 2, ax.get_ylabel()
+
+
+def test_log_ticks_label_every_span():
+    assert figures.log_ticks(0.021, 0.07) == [0.03, 0.05, 0.07]
+    assert figures.log_ticks(2.5, 30) == [5, 10, 20]
+    assert figures.log_ticks(1e-3, 10) == [1e-3, 1e-2, 1e-1, 1, 10]
+
+
 def test_evaluate_reads_snapshots_listed_in_stats(tmp_path):
     """The `--snapshots` contract (docs/harness.md): only the files stats.json lists, the final image replacing
     its own snapshot, time from the per-pass record."""
