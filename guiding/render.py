@@ -261,17 +261,19 @@ class _IterationImages:
 
 class SnapshotWriter:
     """A ``snapshot`` callback for :func:`render` that writes ``image_snapNNNNN.exr`` (spp zero-padded to five
-    digits, atomically) into ``folder`` and lists them in :attr:`entries` (for ``stats.json``)."""
+    digits, atomically) into ``folder`` and lists them in :attr:`entries` (for ``stats.json``). ``metadata``: the
+    EXR header attributes every snapshot carries (:func:`guiding.imageio.write_exr`), its spp added."""
 
-    def __init__(self, folder: str | Path):
+    def __init__(self, folder: str | Path, metadata: dict | None = None):
         self.folder = Path(folder)
+        self.metadata = metadata or {}
         self.entries: list[dict] = []
 
     def __call__(self, spp: int, image: np.ndarray, seconds: float, spp_in_image: int) -> None:
         from .imageio import write_exr
 
         name = f"image_snap{spp:05d}.exr"
-        write_exr(self.folder / name, image)
+        write_exr(self.folder / name, image, {**self.metadata, "spp": spp, "spp_in_image": spp_in_image})
         self.entries.append({"spp": spp, "file": name, "seconds": seconds, "spp_in_image": spp_in_image})
 
 
