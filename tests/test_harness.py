@@ -479,6 +479,9 @@ def test_ci_workflow_runs_end_to_end(ci_run):
     for experiment in ("table1", "table2", "equal_time", "convergence"):
         runs = pd.read_csv(out / "tables" / f"{experiment}_runs.csv")
         assert runs.host.notna().all() and runs.device.str.len().gt(0).all() and (runs.variant == "llvm_ad_rgb").all()
+        for metric in ("flip", "mse", "smape", "relmse_trimmed"):   # beside the paper's MAE, for every render
+            assert _finite(runs, metric) and (runs[metric] > 0).all(), (experiment, metric)
+        assert (runs.flip < 1).all() and (runs.smape < 1).all() and (runs.relmse_trimmed <= runs.relmse).all()
         assert (out / "tables" / f"{experiment}.md").read_text().startswith("# ")
     timed = pd.read_csv(out / "tables" / "equal_time_runs.csv")
     assert (timed.threads == 2).all()  # a timed render took every core given (--cores 2)
@@ -491,6 +494,32 @@ def test_ci_workflow_runs_end_to_end(ci_run):
     assert {r["experiment"] for r in prov["renders"]} == {"table1", "table2", "equal_time", "convergence",
                                                           "reference"}
     assert seconds < 300
+
+
+def test_ci_outputs_are_strict_json_and_carry_their_metadata(ci_run):
+    """Every JSON file parses without NaN/Infinity (a reference's hit rate is null); every EXR says what made it;
+    the jobs' logs show their progress (plain lines, with an ETA) and no error."""
+    workdir, _ = ci_run
+    out = workdir / "results" / "ci"
+
+    def refuse(token):
+        raise ValueError(f"non-standard JSON token {token}")
+
+    files = sorted(out.rglob("*.json"))
+    assert len(files) > 30   # every stats.json and metrics.json, provenance.json
+    for path in files:
+        json.loads(path.read_text(), parse_constant=refuse)
+    reference = next((out / "references").rglob("stats.json"))
+    assert json.loads(reference.read_text())["hit_rate"] is None
+    render = out / "renders" / "table2" / "door-ajar" / "mc-sphere_inv" / "spp16" / "seed0"
+    metadata = imageio.read_exr_metadata(render / "image.exr")
+    assert (metadata["method"], metadata["scene"], metadata["seed"], metadata["spp"]) == ("mc-sphere_inv",
+                                                                                          "door-ajar", 0, 16)
+    assert metadata["variant"] == "llvm_ad_rgb" and metadata["threads"] == 1 and metadata["versions"]["mitsuba"]
+    assert metadata["guide"]["rule"] == "mc" and metadata["parameters"]["scale"] == 0.1
+    assert imageio.read_exr_metadata(reference.parent / "image.exr")["method"] == "reference-path"
+    log = (out / "logs" / "render" / "table2" / "door-ajar" / "mc-sphere_inv" / "spp16" / "seed0.log").read_text()
+    assert "render: 16/16 spp (100%), " in log and "ETA" in log and "\r" not in log
 
 
 def test_second_run_has_nothing_to_do(ci_run):
@@ -509,12 +538,61 @@ def test_single_run_rerun_redoes_that_render_and_what_depends_on_it(ci_run):
     assert counts["table"] == 1 and "reference" not in counts
 
 
-def test_report_with_provenance(ci_run):
+def _report_files(report: Path) -> dict[str, bytes]:
+    """File name -> content of every result embedded in a Snakemake HTML report (as data URIs)."""
+    import base64
+    import re
+
+    return {name: base64.b64decode(data) for name, data in
+            re.findall(r"filename=([^;\"]+);base64,([A-Za-z0-9+/=]+)", report.read_text())}
+
+
+def test_report_after_the_run_holds_every_table_figure_and_the_provenance(ci_run):
+    """`snakemake --report FILE` after the run, without repeating --configfile: it reports the configuration that
+    ran (the issue: "table1.csv marked for report but does not exist")."""
     workdir, _ = ci_run
     report = workdir / "report.html"
-    result = snakemake("--configfile", CI_CONFIG, "--directory", workdir, "--report", report)
+    result = snakemake("--directory", workdir, "--report", report)
     assert result.returncode == 0, result.stderr[-2000:]
-    assert report.stat().st_size > 10000 and "provenance.html" in result.stdout + result.stderr
+    embedded = _report_files(report)
+    out = workdir / "results" / "ci"
+    expected = [out / "tables" / f"{e}{suffix}" for e in ("table1", "table2", "equal_time", "convergence")
+                for suffix in (".csv", ".md", "_runs.csv")]
+    expected += [out / "figures" / f"{name}.png" for name in ("table1_heatmap", "equal_time_comparison",
+                                                               "convergence")]
+    expected.append(out / "provenance.html")
+    for path in expected:
+        assert embedded.get(path.name) == path.read_bytes(), path.name
+    assert b"| **cornell** |" in embedded["equal_time.md"]   # the paper's layout, in the report
+
+
+def test_a_failing_job_prints_its_cause(tmp_path):
+    """A job's one-line error is printed by the workflow itself, not only written to the job's log."""
+    import yaml
+
+    (tmp_path / "scenes" / "broken").mkdir(parents=True)
+    (tmp_path / "scenes" / "broken" / "scene.xml").write_text(
+        (ROOT / "scenes" / "cornell" / "scene.xml").read_text().replace('type="diffuse"', 'type="no-such-bsdf"', 1))
+    config = ci_config()
+    config.update(scene_dirs=[str(tmp_path / "scenes")], scenes={"broken": {"scale": 0.1}}, figures={"comparison": []},
+                  experiments={"equal_time": {"scenes": ["broken"], "budget": "equal_spp", "timed": False,
+                                              "methods": ["brdf"]}})
+    (tmp_path / "broken.yaml").write_text(yaml.safe_dump(config))
+    result = snakemake("--cores", 1, "--configfile", tmp_path / "broken.yaml", "--directory", tmp_path / "work",
+                       "--keep-going")
+    assert result.returncode != 0
+    causes = [line for line in result.stderr.splitlines() if line.startswith("job failed: ")]
+    assert len(causes) == 2   # the reference and the render
+    assert all("error: cannot load scene 'broken'" in line and 'type "no-such-bsdf"' in line and "(log: " in line
+               for line in causes)
+
+
+def test_job_failure_names_the_cause():
+    log = "render: 8/16 spp (50%)\nTraceback (most recent call last):\n  ...\nValueError: bad things\n"
+    assert harness.job_failure(log, 1) == "ValueError: bad things"
+    assert harness.job_failure("render: 8/16\nerror: unknown scene 'x'\n", 2) == "error: unknown scene 'x'"
+    assert harness.job_failure("render: 8/16 spp (50%)\n", 137) == "killed by signal 9 (log ends: render: 8/16 spp (50%))"
+    assert harness.job_failure("", 1) == "exit status 1, nothing in its log"
 
 
 def test_bad_config_is_rejected_before_any_job(tmp_path):
