@@ -273,8 +273,10 @@ class SnapshotWriter:
         from .imageio import write_exr
 
         name = f"image_snap{spp:05d}.exr"
-        write_exr(self.folder / name, image, {**self.metadata, "spp": spp, "spp_in_image": spp_in_image})
+        # Listed before it is written: a Ctrl-C that lands between the file's rename and its listing (Mitsuba
+        # delivers it late) must still find the file to remove; stats.json, written last, never lists a failed one.
         self.entries.append({"spp": spp, "file": name, "seconds": seconds, "spp_in_image": spp_in_image})
+        write_exr(self.folder / name, image, {**self.metadata, "spp": spp, "spp_in_image": spp_in_image})
 
 
 #: Seconds between two progress lines when stderr is not a terminal (a Snakemake job's log, a pipe): often enough to
