@@ -46,13 +46,17 @@ RUN_LOG = "{experiment}/{scene}/{method}/{budget}/seed{seed}.log"
 os.environ.setdefault("GUIDING_PYTHON", sys.executable)
 
 
+# Output to the job's log; on failure, the cause from the log on stderr (and the command's exit status kept).
+LOG_AND_CAUSE = (
+    " > {log:q} 2>&1 || {{ status=$?;"
+    ' "$GUIDING_PYTHON" -m guiding.harness cause {log:q} --status $status; exit $status; }}'
+)
+
+
 def logged(command):
     """``command`` with its output in the job's log; when it fails, why (the command line's one-line error, or a
     traceback's last line) is printed on stderr, so that it stands in Snakemake's own output, not only in the log."""
-    return (
-        command + " > {log:q} 2>&1 || {{ status=$?;"
-        ' "$GUIDING_PYTHON" -m guiding.harness cause {log:q} --status $status; exit $status; }}'
-    )
+    return "".join((command, LOG_AND_CAUSE))
 
 
 onsuccess:
