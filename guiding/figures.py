@@ -112,6 +112,27 @@ def _bare(ax, frame: bool = False) -> None:
         spine.set_visible(frame)
 
 
+def _method_cells(figure, crop_cell, error_cell, entry: dict, image: np.ndarray, error: np.ndarray | None,
+                  reference: np.ndarray, box: tuple[int, int, int, int]):
+    """Draw one method of a comparison grid: its crop in grid cell ``crop_cell`` (the crop's MAE below it, the whole
+    image's MAE by the label) and its FLIP error map in ``error_cell`` below it. Returns the error image drawn, or
+    None where FLIP is undefined."""
+    crop_ax = figure.add_subplot(crop_cell, anchor="S")   # crop and error map keep together in roomy cells
+    crop_ax.imshow(display(_crop(image, box)), interpolation="nearest")
+    image_mae = json.loads(Path(entry["metrics"]).read_text()).get("mae")
+    crop_ax.set_title(f"{entry['label']}\n{_finite_text(image_mae, 'image MAE', 4)}", fontsize=7)
+    crop_ax.set_xlabel(_finite_text(mae_tonemapped(_crop(image, box), _crop(reference, box)), "MAE", 4), fontsize=8)
+    _bare(crop_ax, frame=True)
+    error_ax = figure.add_subplot(error_cell, anchor="N")
+    shown = None
+    if error is not None:
+        shown = error_ax.imshow(_crop(error, box), cmap=ERROR_CMAP, vmin=0, vmax=1, interpolation="nearest")
+    error_ax.set_xlabel(_finite_text(None if error is None else float(_crop(error, box).mean()), "FLIP", 3),
+                        fontsize=8)
+    _bare(error_ax, frame=True)
+    return shown
+
+
 def _scene_block(figure, grid, first_row: int, row: dict, lines: int, columns: int):
     """Draw one scene's rows of a comparison grid (two per line: crops, error maps) from ``first_row`` of
     ``grid``; ``row`` as :func:`_comparison_row` returns it. Returns the last FLIP image drawn (for the colour
@@ -129,20 +150,9 @@ def _scene_block(figure, grid, first_row: int, row: dict, lines: int, columns: i
     shown = None
     for i, (entry, image, error) in enumerate(zip(row["entries"], row["images"], row["errors"])):
         line, column = divmod(i, columns)
-        crop_ax = figure.add_subplot(grid[first_row + 2 * line, 1 + column])
-        crop_ax.imshow(display(_crop(image, box)), interpolation="nearest")
-        image_mae = json.loads(Path(entry["metrics"]).read_text()).get("mae")
-        crop_ax.set_title(f"{entry['label']}\n{_finite_text(image_mae, 'image MAE', 4)}", fontsize=7)
-        crop_ax.set_xlabel(_finite_text(mae_tonemapped(_crop(image, box), _crop(reference, box)), "MAE", 4),
-                           fontsize=8)
-        _bare(crop_ax, frame=True)
-        crop_ax.set_anchor("S")   # a crop and its error map stay together when their cells have room to spare
-        error_ax = figure.add_subplot(grid[first_row + 2 * line + 1, 1 + column], anchor="N")
-        if error is not None:
-            shown = error_ax.imshow(_crop(error, box), cmap=ERROR_CMAP, vmin=0, vmax=1, interpolation="nearest")
-        error_ax.set_xlabel(_finite_text(None if error is None else float(_crop(error, box).mean()), "FLIP", 3),
-                            fontsize=8)
-        _bare(error_ax, frame=True)
+        top = first_row + 2 * line
+        shown = _method_cells(figure, grid[top, 1 + column], grid[top + 1, 1 + column], entry, image, error,
+                              reference, box) or shown
     reference_crop = figure.add_subplot(grid[first_row, columns + 1], anchor="S")
     reference_crop.imshow(display(_crop(reference, box)), interpolation="nearest")
     reference_crop.set_title("Reference", fontsize=8)
