@@ -60,7 +60,8 @@ def _dtree_state(forest) -> dict:
 
 def _stree_state(stree) -> dict:
     """The S-tree of an SD-tree guide: node boxes, first child (-1: leaf), split axis and the leaves' D-trees."""
-    return {"locator": "stree", "stree_lo": np.asarray(stree.lo, np.float64), "stree_hi": np.asarray(stree.hi, np.float64),
+    return {"locator": "stree", "stree_lo": np.asarray(stree.lo, np.float64),
+            "stree_hi": np.asarray(stree.hi, np.float64),
             "stree_child": np.asarray(stree.child, np.int64), "stree_axis": np.asarray(stree.axis, np.int64),
             "stree_tree": np.asarray(stree.tree, np.int64)}
 
@@ -144,7 +145,8 @@ def cell_bounds(state: dict, cell: int) -> tuple[np.ndarray, np.ndarray]:
 # ------------------------------------------------------------------------------------------ densities
 
 def square_directions(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """World directions (..., 3) of points of the cylindrical square: ``cos θ = 2u − 1`` (θ from +z), ``φ = 2πv``."""
+    """World directions (..., 3) of points of the cylindrical square: ``cos θ = 2u − 1`` (θ from +z),
+    ``φ = 2πv``."""
     u, v = np.broadcast_arrays(np.asarray(u, np.float64), np.asarray(v, np.float64))
     cos_theta = 2 * u - 1
     sin_theta = np.sqrt(np.maximum(1 - cos_theta ** 2, 0))

@@ -302,8 +302,8 @@ class _Progress:
         self.last_line = -math.inf
         self.bar = None
         if enabled or (enabled is None and not self.lines):
-            self.bar = tqdm(total=self.total, desc="render", file=sys.stderr,
-                            bar_format="{desc}: {percentage:3.0f}%|{bar}| " + amount + " [{elapsed}<{remaining}{postfix}]")
+            meter = "{desc}: {percentage:3.0f}%|{bar}| " + amount + " [{elapsed}<{remaining}{postfix}]"
+            self.bar = tqdm(total=self.total, desc="render", file=sys.stderr, bar_format=meter)
         self.line_format = "{desc}: " + amount + " ({percentage:.0f}%), {elapsed} elapsed, ETA {remaining}{postfix}"
 
     def _done(self, spp: int, counted: float) -> float:

@@ -591,7 +591,8 @@ def test_job_failure_names_the_cause():
     log = "render: 8/16 spp (50%)\nTraceback (most recent call last):\n  ...\nValueError: bad things\n"
     assert harness.job_failure(log, 1) == "ValueError: bad things"
     assert harness.job_failure("render: 8/16\nerror: unknown scene 'x'\n", 2) == "error: unknown scene 'x'"
-    assert harness.job_failure("render: 8/16 spp (50%)\n", 137) == "killed by signal 9 (log ends: render: 8/16 spp (50%))"
+    assert harness.job_failure("render: 8/16 spp (50%)\n", 137) == ("killed by signal 9 (log ends: render: 8/16 spp "
+                                                                  "(50%))")
     assert harness.job_failure("", 1) == "exit status 1, nothing in its log"
 
 
