@@ -1,4 +1,5 @@
-"""Command line: ``python -m guiding {render, reference, evaluate, bench, demo, validate, scenes, methods}``.
+"""Command line: ``python -m guiding {render, reference, evaluate, bench, demo, validate, show-guide, scenes,
+methods}``.
 
 Bad input ends with one line on stderr and a non-zero exit, before any output is written; an interrupted run
 (Ctrl-C: exit code 130) leaves no output files behind (they are written atomically, together, last of all).
@@ -462,10 +463,8 @@ def _command_methods(args) -> None:
 
 
 COMMANDS = {"render": _command_render, "reference": _command_reference, "evaluate": _command_evaluate,
-            "bench": _command_bench, "validate": _command_validate, "demo": _command_demo, "scenes": _command_scenes,
-            "methods": _command_methods}
-
-COMMANDS["show-guide"] = _command_show_guide   # also `python -m guiding show-guide` (guiding.guide_state)
+            "bench": _command_bench, "validate": _command_validate, "demo": _command_demo,
+            "show-guide": _command_show_guide, "scenes": _command_scenes, "methods": _command_methods}
 
 
 def _interrupted(error: BaseException) -> bool:

@@ -41,11 +41,16 @@ def _vector(value) -> np.ndarray:
     return np.asarray(value, dtype=np.float64).reshape(3)
 
 
+def _cells_state(cells) -> dict:
+    """How to find a point's cell in a uniform grid (:class:`~guiding.guides.grid_cells.GridCells`)."""
+    return {"locator": "grid", "S": cells.S, "bbox_min": _vector(cells.bbox_min),
+            "inv_extent": _vector(cells.inv_extent)}
+
+
 def _grid_state(record) -> dict:
     """The state of a grid guide's radiance record (:class:`~guiding.guides.grid_record.RadianceRecord`)."""
     bins = record.bins.count
-    return {"kind": "grid", "locator": "grid", "S": record.S, "D": record.bins.resolution,
-            "bbox_min": _vector(record.bbox_min), "inv_extent": _vector(record.inv_extent),
+    return {"kind": "grid", **_cells_state(record.grid), "D": record.bins.resolution,
             "policy": np.asarray(record.policy.numpy(), np.float32).reshape(record.cells, bins),
             "weight": record.acc_count.numpy().reshape(record.cells, bins).sum(axis=1)}
 
@@ -75,8 +80,7 @@ def capture(guide) -> dict:
     if getattr(guide, "stree", None) is not None:                             # SDTreeGuide
         return {"method": name, **_dtree_state(guide._sampling_host), **_stree_state(guide.stree)}
     if getattr(guide, "_forest", None) is not None:                           # QuadtreeGridGuide
-        return {"method": name, **_dtree_state(guide._forest), "locator": "grid", "S": guide.S,
-                "bbox_min": _vector(guide._bbox_min), "inv_extent": _vector(guide._inv_extent)}
+        return {"method": name, **_dtree_state(guide._forest), **_cells_state(guide._cells)}
     raise GuidingError(f"method '{name}' learns no directional distribution to save (only the grid methods, "
                        "sdtree and quadtree-grid do)")
 

@@ -9,6 +9,7 @@ import pytest
 from guiding import guide_state
 from guiding.methods import make_guide
 from guiding.testing import train
+from tree_helpers import lookup_np
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +54,7 @@ def test_sdtree_state_is_the_density_of_its_dtrees(sdtree_guide):
     uv = rng.random((2000, 2))
     directions = guide_state.square_directions(uv[:, 0], uv[:, 1])
     for tree in range(forest.n_trees):
-        _, pdf = forest.lookup_np(np.full(len(uv), tree), uv)      # the SD-tree's own density on its square
+        _, pdf = lookup_np(forest, np.full(len(uv), tree), uv)      # the SD-tree's own density on its square
         np.testing.assert_allclose(guide_state.density(state, tree, directions), pdf / (4 * math.pi), rtol=1e-6)
         total = np.mean(guide_state.density_image(state, tree, 512, 256)) * 4 * math.pi
         assert total == pytest.approx(1, rel=0.02)
@@ -61,6 +62,19 @@ def test_sdtree_state_is_the_density_of_its_dtrees(sdtree_guide):
     for point in rng.uniform(state["stree_lo"][0], state["stree_hi"][0], (20, 3)):
         low, high = guide_state.cell_bounds(state, guide_state.cell_of_point(state, point))
         assert (low <= point).all() and (point <= high).all()
+
+
+def test_quadtree_grid_state_finds_the_cells_the_guide_uses(cornell):
+    import mitsuba as mi
+
+    guide = train(cornell, make_guide("quadtree-grid-S4"), spp=16)
+    state = guide_state.capture(guide)
+    assert state["kind"] == "dtrees" and guide_state.cell_count(state) == 4 ** 3
+    cell = guide_state.best_cell(state)
+    assert np.mean(guide_state.density_image(state, cell, 512, 256)) * 4 * math.pi == pytest.approx(1, rel=0.02)
+    points = np.random.default_rng(2).uniform(-1, 1, (50, 3))
+    expected = guide._cells.cell(mi.Point3f(points[:, 0], points[:, 1], points[:, 2])).numpy()
+    assert [guide_state.cell_of_point(state, p) for p in points] == expected.tolist()
 
 
 def test_a_guide_that_learns_nothing_has_no_state():
