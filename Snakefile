@@ -1,8 +1,9 @@
 """The experiment DAG: references -> renders -> metrics -> tables, figures, provenance (docs/harness.md).
 
 Thin on purpose: guiding/harness.py expands the configuration into runs and paths, `python -m guiding` renders,
-guiding/tables.py and guiding/figures.py draw. Without --configfile, config/config.yaml is used; a --configfile
-replaces it (no merging), --config KEY=VALUE overrides single keys.
+guiding/tables.py and guiding/figures.py draw. Without --configfile, config/config.yaml is used (for --report: the
+configuration of the last completed run); a --configfile replaces it (no merging), --config KEY=VALUE overrides
+single keys.
 """
 
 import json
@@ -14,8 +15,14 @@ from snakemake.exceptions import WorkflowError
 from guiding import harness
 
 if not workflow.config_settings.configfiles:
+    # A report describes a run: without --configfile, the one that last completed here (onsuccess below).
+    if harness.report_requested(sys.argv) and os.path.exists(harness.LAST_RUN_CONFIG):
 
-    configfile: os.path.join(workflow.basedir, "config", "config.yaml")
+        configfile: harness.LAST_RUN_CONFIG
+
+    else:
+
+        configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
 PLAN = harness.plan_or_exit(
@@ -37,6 +44,23 @@ RENDER = "renders/{experiment}/{scene}/{method}/{budget}/seed{seed}"
 RUN_LOG = "{experiment}/{scene}/{method}/{budget}/seed{seed}.log"
 # The jobs run the same Python as Snakemake (kept out of the commands, so it is no rerun trigger).
 os.environ.setdefault("GUIDING_PYTHON", sys.executable)
+
+
+# Output to the job's log; on failure, the cause from the log on stderr (and the command's exit status kept).
+LOG_AND_CAUSE = (
+    " > {log:q} 2>&1 || {{ status=$?;"
+    ' "$GUIDING_PYTHON" -m guiding.harness cause {log:q} --status $status; exit $status; }}'
+)
+
+
+def logged(command):
+    """``command`` with its output in the job's log; when it fails, why (the command line's one-line error, or a
+    traceback's last line) is printed on stderr, so that it stands in Snakemake's own output, not only in the log."""
+    return "".join((command, LOG_AND_CAUSE))
+
+
+onsuccess:
+    harness.record_run_config(config)
 
 
 def all_cores():
@@ -102,8 +126,7 @@ rule reference:
         gpu=PLAN.gpu,
     cache: "omit-software"  # with --cache reference and $SNAKEMAKE_OUTPUT_CACHE: shared between output folders
     shell:
-        '"$GUIDING_PYTHON" -m guiding {params.args} --threads {threads} --out $(dirname {output.image:q}) --quiet'
-        " > {log:q} 2>&1"
+        logged('"$GUIDING_PYTHON" -m guiding {params.args} --threads {threads} --out $(dirname {output.image:q})')
 
 
 # Untimed renders (equal spp): many side by side, `threads` Dr.Jit threads each.
@@ -124,8 +147,7 @@ rule render:
     resources:
         gpu=PLAN.gpu,
     shell:
-        '"$GUIDING_PYTHON" -m guiding {params.args} --threads {threads} --out $(dirname {output.image:q}) --quiet'
-        " > {log:q} 2>&1"
+        logged('"$GUIDING_PYTHON" -m guiding {params.args} --threads {threads} --out $(dirname {output.image:q})')
 
 
 # Timed renders (equal time, convergence) never share the machine: they take every core Snakemake was given (so
@@ -149,8 +171,7 @@ rule render_timed:
         gpu=PLAN.gpu,
         timing=1,
     shell:
-        '"$GUIDING_PYTHON" -m guiding {params.args} --threads {threads} --out $(dirname {output.image:q}) --quiet'
-        " > {log:q} 2>&1"
+        logged('"$GUIDING_PYTHON" -m guiding {params.args} --threads {threads} --out $(dirname {output.image:q})')
 
 
 rule evaluate:
@@ -165,8 +186,10 @@ rule evaluate:
     params:
         run=lambda wc: json.dumps(PLAN.run_for(wc).info()),
     shell:
-        '"$GUIDING_PYTHON" -m guiding.harness evaluate {input.image:q} {input.stats:q} {input.reference:q}'
-        " --run {params.run:q} --out {output:q} > {log:q} 2>&1"
+        logged(
+            '"$GUIDING_PYTHON" -m guiding.harness evaluate {input.image:q} {input.stats:q} {input.reference:q}'
+            " --run {params.run:q} --out {output:q}"
+        )
 
 
 rule table:
@@ -179,7 +202,12 @@ rule table:
             category="Tables",
             labels={"experiment": "{experiment}", "content": "cells (mean over seeds) and the paper's numbers"},
         ),
-        md=out("tables/{experiment}.md"),
+        md=report(
+            out("tables/{experiment}.md"),
+            caption="docs/report/markdown.rst",
+            category="Tables",
+            labels={"experiment": "{experiment}", "content": "laid out like the paper's table, ours / paper"},
+        ),
         runs=report(
             out("tables/{experiment}_runs.csv"),
             caption="docs/report/runs.rst",
@@ -191,8 +219,10 @@ rule table:
     params:
         spec=lambda wc: json.dumps(PLAN.experiment_spec(wc.experiment)),
     shell:
-        '"$GUIDING_PYTHON" -m guiding.tables --spec {params.spec:q} --csv {output.csv:q} --md {output.md:q}'
-        " --runs-csv {output.runs:q} {input:q} > {log:q} 2>&1"
+        logged(
+            '"$GUIDING_PYTHON" -m guiding.tables --spec {params.spec:q} --csv {output.csv:q} --md {output.md:q}'
+            " --runs-csv {output.runs:q} {input:q}"
+        )
 
 
 rule figure_comparison:
@@ -210,7 +240,7 @@ rule figure_comparison:
     params:
         job=lambda wc: json.dumps(PLAN.comparison_job(wc.experiment)),
     shell:
-        '"$GUIDING_PYTHON" -m guiding.figures comparison --job {params.job:q} --out {output:q} > {log:q} 2>&1'
+        logged('"$GUIDING_PYTHON" -m guiding.figures comparison --job {params.job:q} --out {output:q}')
 
 
 rule figure_convergence:
@@ -228,8 +258,7 @@ rule figure_convergence:
     params:
         job=lambda wc: json.dumps({"scenes": PLAN.config["experiments"].get("convergence", {}).get("scenes", [])}),
     shell:
-        '"$GUIDING_PYTHON" -m guiding.figures convergence --job {params.job:q} --out {output:q} {input:q}'
-        " > {log:q} 2>&1"
+        logged('"$GUIDING_PYTHON" -m guiding.figures convergence --job {params.job:q} --out {output:q} {input:q}')
 
 
 rule figure_heatmap:
@@ -245,7 +274,7 @@ rule figure_heatmap:
     log:
         out("logs/figures/table1_heatmap.log"),
     shell:
-        '"$GUIDING_PYTHON" -m guiding.figures heatmap --csv {input:q} --out {output:q} > {log:q} 2>&1'
+        logged('"$GUIDING_PYTHON" -m guiding.figures heatmap --csv {input:q} --out {output:q}')
 
 
 rule provenance:
@@ -266,6 +295,8 @@ rule provenance:
         config=lambda wc: json.dumps(config),  # a function: the config's templates hold braces
         configfiles=lambda wc: os.pathsep.join(map(str, workflow.config_settings.configfiles)),
     shell:
-        '"$GUIDING_PYTHON" -m guiding.harness provenance --config {params.config:q}'
-        " --configfiles {params.configfiles:q}"
-        " --out-json {output.json:q} --out-html {output.html:q} {input:q} > {log:q} 2>&1"
+        logged(
+            '"$GUIDING_PYTHON" -m guiding.harness provenance --config {params.config:q}'
+            " --configfiles {params.configfiles:q}"
+            " --out-json {output.json:q} --out-html {output.html:q} {input:q}"
+        )

@@ -15,6 +15,7 @@ from .errors import GuidingError
 VARIANTS = ("auto", "llvm_ad_rgb", "cuda_ad_rgb")
 MIN_LLVM = 16
 LLVM_FIX = "apt-get install libllvm19"
+CUDA_FIX = "--variant llvm_ad_rgb (the CPU) or --variant auto"
 
 _LLVM_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib",
               "/usr/local/lib", "/opt/homebrew/opt/llvm/lib", "/usr/local/opt/llvm/lib")
@@ -72,9 +73,15 @@ def set_variant(variant: str = "auto", threads: int | None = None) -> str:
             raise BackendError(f"the CPU backend needs libLLVM >= {MIN_LLVM} and none was found: run `{LLVM_FIX}` "
                                "(or set DRJIT_LIBLLVM_PATH)")
         os.environ["DRJIT_LIBLLVM_PATH"] = lib
+    if variant.startswith("cuda") and not cuda_available():
+        raise BackendError(f"variant {variant} needs an NVIDIA GPU and its driver, and this machine has neither "
+                           f"(libcuda.so.1 not found): use {CUDA_FIX}")
     import drjit as dr
     import mitsuba as mi
 
+    if variant.startswith("cuda") and not dr.has_backend(dr.JitBackend.CUDA):
+        raise BackendError(f"variant {variant}: the NVIDIA driver is installed but Dr.Jit cannot start a CUDA device "
+                           f"(none present, or the driver is too old for Dr.Jit {dr.__version__}): use {CUDA_FIX}")
     try:
         mi.set_variant(variant)
     except (ImportError, AttributeError, RuntimeError) as error:

@@ -1,4 +1,5 @@
-"""Command line: ``python -m guiding {render, reference, evaluate, bench, demo, validate, scenes, methods}``.
+"""Command line: ``python -m guiding {render, reference, evaluate, bench, demo, validate, show-guide, scenes,
+methods}``.
 
 Bad input ends with one line on stderr and a non-zero exit, before any output is written; an interrupted run
 (Ctrl-C: exit code 130) leaves no output files behind (they are written atomically, together, last of all).
@@ -7,6 +8,7 @@ Bad input ends with one line on stderr and a non-zero exit, before any output is
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -98,6 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="also write the image after every pass_spp*2^k spp as image_snapNNNNN.exr")
     render.add_argument("--memory-limit", type=_memory_size, default=None,
                         help="largest guide tables allowed, e.g. 512M or 16G (default $GUIDING_MEMORY_LIMIT or 8G)")
+    render.add_argument("--save-guide", action="store_true",
+                        help="also write what the guide learned as guide.npz (for `show-guide`)")
     _add_backend_options(render)
 
     reference = commands.add_parser("reference", help="render a reference with Mitsuba's `path` integrator")
@@ -109,6 +113,17 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = commands.add_parser("evaluate", help="print the metrics of IMAGE against REF as JSON")
     evaluate.add_argument("image")
     evaluate.add_argument("ref")
+    evaluate.add_argument("--error-map", metavar="PNG", help="also write the HDR-FLIP error map (false colour)")
+
+    show = commands.add_parser("show-guide", help="draw the directional distribution a render's guide learned "
+                               "(render --save-guide) in one cell, or at the first vertex seen through a pixel")
+    show.add_argument("render_dir", help="the render's output folder (with guide.npz and stats.json)")
+    where = show.add_mutually_exclusive_group()
+    where.add_argument("--cell", type=int, help="cell (grid) or D-tree (sdtree) index (default: the best trained)")
+    where.add_argument("--pixel", type=int, nargs=2, metavar=("X", "Y"),
+                       help="the cell of the first surface seen through pixel (X, Y) of the render")
+    show.add_argument("--out", help="PNG file (default RENDER_DIR/guide_cellN.png)")
+    show.add_argument("--variant", default="llvm_ad_rgb", help="variant used to find bins and cast the ray")
 
     bench = commands.add_parser("bench", help="cost per spp of every method vs `brdf` and Mitsuba's `path` "
                                 "(same process, interleaved passes)")
@@ -153,6 +168,22 @@ def _prepare_output_dir(path: str) -> Path:
     return out
 
 
+@contextlib.contextmanager
+def _output_dir(path: str):
+    """:func:`_prepare_output_dir`, and the folders it made removed again if the block fails: bad input found
+    later (a broken scene file) or Ctrl-C leaves no empty output folder behind."""
+    out = Path(path)
+    made = [folder for folder in (out, *out.parents) if not folder.exists()]   # deepest first
+    folder = _prepare_output_dir(path)
+    try:
+        yield folder
+    except BaseException:
+        for made_folder in made:
+            with contextlib.suppress(OSError):   # not empty: something else wrote there, keep it
+                made_folder.rmdir()
+        raise
+
+
 def _provenance(variant: str, threads: int | None) -> dict:
     import drjit as dr
     import mitsuba as mi
@@ -183,13 +214,30 @@ def device_name(variant: str) -> str:
     return f"CPU: {platform.processor() or platform.machine()}"
 
 
+def _image_metadata(scene_name: str, args, method: str, integrator, budget, provenance: dict) -> dict:
+    """What every EXR file of a render carries in its header (imageio.write_exr; the spp are added per file): the
+    method and its guide's parameters, the render's parameters, seed, scene, variant, device and versions."""
+    from .provenance import software_versions
+
+    guide = getattr(integrator, "guide", None)
+    parameters = {"budget": asdict(budget), "max_depth": args.max_depth, "scale": args.scale,
+                  "combine": getattr(args, "combine", "last")}
+    return {"method": method, "scene": scene_name, "seed": args.seed, "parameters": parameters,
+            "guide": {k: v for k, v in (guide.stats() if guide is not None else {}).items()
+                      if not isinstance(v, (dict, list))},
+            **{k: provenance[k] for k in ("variant", "device", "threads", "host", "date")},
+            "versions": software_versions()}
+
+
 def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget, variant: str) -> dict:
-    from . import imageio
+    from . import guide_state, imageio, strict_json
     from .render import SnapshotWriter, render
     from .scenes import find_scene, load_scene
 
     scene = load_scene(scene_name, args.scale, args.scene_dir)
-    snapshots = SnapshotWriter(out) if getattr(args, "snapshots", False) else None
+    provenance = _provenance(variant, args.threads)
+    metadata = _image_metadata(scene_name, args, method, integrator, budget, provenance)
+    snapshots = SnapshotWriter(out, metadata) if getattr(args, "snapshots", False) else None
     try:
         result = render(scene, integrator, budget, seed=args.seed, progress=False if args.quiet else None,
                         combine=getattr(args, "combine", "last"), snapshot=snapshots)
@@ -201,14 +249,17 @@ def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget
     stats = {"scene": scene_name, "scene_file": str(find_scene(scene_name, args.scene_dir)), "scale": args.scale,
              "resolution": film_size, "method": method, "seed": args.seed, "max_depth": args.max_depth,
              **result.summary(), "guide": getattr(getattr(integrator, "guide", None), "stats", dict)(),
-             "provenance": _provenance(variant, args.threads), "per_pass": [asdict(p) for p in result.passes]}
+             "provenance": provenance, "per_pass": [asdict(p) for p in result.passes]}
     if snapshots is not None:
         stats["snapshots"] = snapshots.entries  # stats.json is written last: only the files it lists are complete
-    with imageio.atomic_outputs(out / "image.exr", out / "preview.png", out / "stats.json") as (exr, png, js):
-        imageio.write_exr(exr, result.image)
+    state = guide_state.capture(integrator.guide) if getattr(args, "save_guide", False) else None
+    names = ["image.exr", "preview.png", "stats.json", *([guide_state.STATE_FILE] if state is not None else [])]
+    with imageio.atomic_outputs(*(out / name for name in names)) as (exr, png, js, *npz):
+        imageio.write_exr(exr, result.image, {**metadata, "spp": result.spp, "spp_in_image": result.spp_in_image})
         imageio.write_png(png, result.image)
-        with open(js, "w") as file:
-            json.dump(stats, file, indent=1)
+        Path(js).write_text(strict_json.dumps(stats))
+        if state is not None:
+            guide_state.save(npz[0], state)
     return stats
 
 
@@ -222,15 +273,17 @@ def _command_render(args) -> None:
     find_scene(args.scene, args.scene_dir)
     check_method(args.method, args.memory_limit)
     variant = set_variant(args.variant, args.threads)
-    out = _prepare_output_dir(args.out)
     guide = make_guide(args.method, args.memory_limit)
+    if args.save_guide and not guide.records():
+        raise GuidingError(f"--save-guide: method '{args.method}' learns nothing to save")
     from .integrator import GuidedPathIntegrator
     import mitsuba as mi
 
     props = mi.Properties()
     props["max_depth"] = args.max_depth
     integrator = GuidedPathIntegrator(props, guide=guide)
-    stats = _render_to(out, args.scene, args, integrator, args.method, budget, variant)
+    with _output_dir(args.out) as out:
+        stats = _render_to(out, args.scene, args, integrator, args.method, budget, variant)
     print(f"{args.method} on {args.scene}: {stats['spp']} spp in {stats['seconds']:.2f} s "
           f"(compile {stats['compile_seconds']:.2f} s), hit rate {stats['hit_rate']:.4f} -> {out}")
 
@@ -243,19 +296,50 @@ def _command_reference(args) -> None:
     budget = Budget(spp=args.spp, pass_spp=min(args.pass_spp, args.spp))
     find_scene(args.scene, args.scene_dir)
     variant = set_variant(args.variant, args.threads)
-    out = _prepare_output_dir(args.out)
     import mitsuba as mi
 
     integrator = mi.load_dict({"type": "path", "max_depth": args.max_depth})
-    stats = _render_to(out, args.scene, args, integrator, "reference-path", budget, variant)
+    with _output_dir(args.out) as out:
+        stats = _render_to(out, args.scene, args, integrator, "reference-path", budget, variant)
     print(f"reference of {args.scene}: {stats['spp']} spp in {stats['seconds']:.1f} s -> {out}")
 
 
 def _command_evaluate(args) -> None:
+    from . import strict_json
     from .imageio import read_exr
     from .metrics import evaluate
 
-    print(json.dumps(evaluate(read_exr(args.image), read_exr(args.ref)), indent=1))
+    image, ref = read_exr(args.image), read_exr(args.ref)
+    metrics = evaluate(image, ref)
+    if args.error_map:
+        from .figures import error_map
+
+        error_map(image, ref, args.error_map)
+    print(strict_json.dumps(metrics))
+
+
+def _command_show_guide(args) -> None:
+    """Draw a saved guide's distribution in one cell: ``--cell``, the cell of the first vertex seen through
+    ``--pixel``, or the best trained cell."""
+    from . import guide_state
+    from .backend import set_variant
+
+    folder = Path(args.render_dir)
+    state = guide_state.load(folder / guide_state.STATE_FILE)
+    stats = json.loads((folder / "stats.json").read_text())
+    set_variant(args.variant)
+    marks, where = {}, ""
+    if args.pixel is not None:
+        point, marks = guide_state.first_vertex(stats, *args.pixel)
+        cell = guide_state.cell_of_point(state, point)
+        where = f"pixel ({args.pixel[0]}, {args.pixel[1]}) sees p = ({', '.join(f'{c:.3g}' for c in point)}); "
+    else:
+        cell = guide_state.best_cell(state) if args.cell is None else guide_state.check_cell(state, args.cell)
+    out = Path(args.out) if args.out else folder / f"guide_cell{cell}.png"
+    title = (f"{stats.get('method')} on {stats.get('scene')}, {stats.get('spp')} spp: {where}cell {cell} "
+             f"of {guide_state.cell_count(state)}")
+    guide_state.draw(state, cell, out, title, marks)
+    print(f"{title} -> {out}")
 
 
 def _parse_scene_list(text: str) -> list[tuple[str, float]]:
@@ -379,8 +463,8 @@ def _command_methods(args) -> None:
 
 
 COMMANDS = {"render": _command_render, "reference": _command_reference, "evaluate": _command_evaluate,
-            "bench": _command_bench, "validate": _command_validate, "demo": _command_demo, "scenes": _command_scenes,
-            "methods": _command_methods}
+            "bench": _command_bench, "validate": _command_validate, "demo": _command_demo,
+            "show-guide": _command_show_guide, "scenes": _command_scenes, "methods": _command_methods}
 
 
 def _interrupted(error: BaseException) -> bool:

@@ -5,8 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from . import strict_json
 from .errors import GuidingError
 from .imageio import write_text_atomic
+from .metrics import METRICS
 
 
 def render_seconds_at(per_pass: list[dict], spp: int) -> float:
@@ -20,7 +22,7 @@ def render_seconds_at(per_pass: list[dict], spp: int) -> float:
 
 
 #: What each point of an error-vs-time curve keeps of the metrics.
-CURVE_METRICS = ("mae", "mae_hdr", "relmse", "nonfinite_pixels")
+CURVE_METRICS = (*METRICS, "nonfinite_pixels")
 
 
 def evaluate_run(image: str, stats: str, reference: str, out: str, run: dict | None = None) -> dict:
@@ -62,5 +64,5 @@ def evaluate_run(image: str, stats: str, reference: str, out: str, run: dict | N
               "stats": {k: stats_data.get(k) for k in keep}, "guide": guide,
               "provenance": stats_data.get("provenance", {}),
               "curve": sorted(curve, key=lambda c: c["spp"])}
-    write_text_atomic(out, json.dumps(result, indent=1))
+    write_text_atomic(out, strict_json.dumps(result))
     return result

@@ -19,6 +19,7 @@ Command line (used by the rules, handy by hand)::
     python -m guiding.harness runs [--configfile F]          # every run of the configuration, one path a line
     python -m guiding.harness evaluate IMAGE STATS REFERENCE --run JSON --out metrics.json
     python -m guiding.harness provenance --config JSON --out-json F --out-html F STATS...
+    python -m guiding.harness cause LOG --status N             # why a job failed, on stderr (the rules call it)
 """
 
 from __future__ import annotations
@@ -320,7 +321,7 @@ class Plan:
                                       "metrics": self.render_file(r, "metrics.json")} for r in chosen]})
         budget = runs[-1].budget
         budget_text = f"{int(budget.value)} spp" if budget.kind == "spp" else f"{budget.value:g} s"
-        return {"title": f"{experiment}: {budget_text}, seed {seed}; MAE under each crop",
+        return {"title": f"{experiment}: {budget_text}, seed {seed}",
                 "crop_fraction": self.config["figures"]["crop_fraction"], "rows": rows}
 
     def comparison_inputs(self, experiment: str) -> list[str]:
@@ -481,6 +482,39 @@ def plan_or_exit(config: dict, schema: str | os.PathLike = SCHEMA, check: bool =
     return result
 
 
+# --------------------------------------------------------------------------------- workflow runs and reports
+
+#: Where a completed workflow run records its resolved configuration (in Snakemake's folder of the working
+#: directory), so that ``snakemake --report FILE`` without ``--configfile`` reports that run.
+LAST_RUN_CONFIG = os.path.join(".snakemake", "guiding-last-run-config.json")
+
+
+def report_requested(argv: list[str]) -> bool:
+    """Whether the Snakemake command line ``argv`` asks for a report (``--report [FILE]``)."""
+    return any(arg == "--report" or arg.startswith("--report=") for arg in argv)
+
+
+def record_run_config(config: dict, path: str | os.PathLike = LAST_RUN_CONFIG) -> None:
+    """Record the resolved ``config`` of a completed run at ``path`` (strict JSON; Snakemake reads it as a
+    configfile)."""
+    from . import strict_json
+    from .imageio import write_text_atomic
+
+    write_text_atomic(path, strict_json.dumps(config))
+
+
+def job_failure(log_text: str, status: int) -> str:
+    """One line saying why a job failed, from its log ``log_text`` and exit ``status``: the command line's own
+    ``error:`` line, or a traceback's last line, or the log's last line; a job killed by a signal says so."""
+    lines = [line.strip() for line in log_text.splitlines() if line.strip()]
+    errors = [line for line in lines if line.startswith("error:") or line.startswith("interrupted:")]
+    if status > 128 and not errors:
+        return f"killed by signal {status - 128}" + (f" (log ends: {lines[-1]})" if lines else "")
+    if errors:
+        return errors[-1]
+    return lines[-1] if lines else f"exit status {status}, nothing in its log"
+
+
 # ----------------------------------------------------------------------------------------------------- CLI
 
 def _load_plan(configfile: str | None) -> Plan:
@@ -516,7 +550,16 @@ def main(argv: list[str] | None = None) -> int:
     prov.add_argument("--out-html", required=True)
     prov.add_argument("stats", nargs="*")
 
+    cause = commands.add_parser("cause", help="print why a job failed, from its log (the Snakefile's rules)")
+    cause.add_argument("log")
+    cause.add_argument("--status", type=int, required=True, help="the job's exit status")
+
     args = parser.parse_args(argv)
+    if args.command == "cause":
+        text = Path(args.log).read_text(errors="replace") if Path(args.log).is_file() else ""
+        print(f"job failed: {job_failure(text, args.status)} (log: {args.log})", file=sys.stderr)
+        return 0
+    from . import strict_json
     from .evaluation import evaluate_run
     from .imageio import write_text_atomic
     from .provenance import provenance, provenance_html
@@ -541,7 +584,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "provenance":
             configfiles = [p for p in args.configfiles.split(os.pathsep) if p]
             data = provenance(json.loads(args.config), args.stats, configfiles)
-            write_text_atomic(args.out_json, json.dumps(data, indent=1))
+            write_text_atomic(args.out_json, strict_json.dumps(data))
             write_text_atomic(args.out_html, provenance_html(data))
     except GuidingError as error:
         print(f"error: {error}", file=sys.stderr)

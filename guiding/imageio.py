@@ -7,13 +7,18 @@ run never leaves a file that looks complete.
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import io
+import json
 import os
+import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import OpenEXR
 
+from . import strict_json
 from .errors import GuidingError
 
 
@@ -51,37 +56,116 @@ def atomic_outputs(*paths: str | os.PathLike):
                 os.remove(tmp)
 
 
-def write_exr(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write an (H, W, 3) linear RGB image as float32 EXR."""
+#: Prefix of the header attributes this package writes (``guiding/method``, ``guiding/spp``, ...).
+METADATA_PREFIX = "guiding/"
+
+
+def _attribute(value):
+    """A metadata value as an EXR header attribute: numbers and strings as they are, anything else as strict JSON."""
+    if isinstance(value, (int, float, str)) and not isinstance(value, bool):
+        return value
+    return strict_json.dumps(value, indent=None)
+
+
+def write_exr(path: str | os.PathLike, image: np.ndarray, metadata: dict | None = None) -> None:
+    """Write an (H, W, 3) linear RGB image as float32 EXR, with ``metadata`` (name → value; what made the image)
+    as header attributes ``guiding/NAME`` (:func:`read_exr_metadata` reads them back)."""
     image = np.ascontiguousarray(image[..., :3], dtype=np.float32)
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              **{METADATA_PREFIX + name: _attribute(value) for name, value in (metadata or {}).items()}}
     with atomic_path(path) as tmp, OpenEXR.File(header, {"RGB": image}) as exr:
         exr.write(tmp)
 
 
+class _NativeOutput:
+    """Captures what OpenEXR prints inside a ``with`` block: its C++ core writes to the process's stdout and stderr
+    (file descriptors 1 and 2), its Python binding to ``sys.stdout``; the text is in :attr:`text` afterwards. A
+    corrupt file otherwise makes OpenEXR print its own lines around the one error line of the command line."""
+
+    def __enter__(self):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        self.python = io.StringIO()
+        self.redirects = contextlib.ExitStack()
+        self.redirects.enter_context(contextlib.redirect_stdout(self.python))
+        self.redirects.enter_context(contextlib.redirect_stderr(self.python))
+        self.sink = tempfile.TemporaryFile()
+        self.saved = [os.dup(1), os.dup(2)]
+        for fd in (1, 2):
+            os.dup2(self.sink.fileno(), fd)
+        return self
+
+    def __exit__(self, *exc_info):
+        ctypes.CDLL(None).fflush(None)   # what C stdio still buffers goes to the sink, not to the terminal later
+        for fd, saved in zip((1, 2), self.saved):
+            os.dup2(saved, fd)
+            os.close(saved)
+        self.redirects.close()
+        self.sink.seek(0)
+        self.text = self.sink.read().decode(errors="replace") + self.python.getvalue()
+        self.sink.close()
+        return False
+
+
+def _exr_problem(path: str | os.PathLike, error: Exception | None, native: str) -> str:
+    """Why ``path`` could not be read, in a few words, from OpenEXR's exception and what its core printed."""
+    for line in native.splitlines():
+        if "EXR_ERR_" in line:   # "PATH: (EXR_ERR_BAD_CHUNK_LEADER) Preparing to read scanline 48 ..., found ..."
+            code, _, what = line.removeprefix(f"{path}: ").strip().partition(") ")
+            return f"not a readable EXR file: truncated or corrupt ({code.strip('(')}: {what})"
+    if error is not None and "Unable to open" in str(error):
+        return "not a readable EXR file (no EXR file, or its header is truncated or corrupt)"
+    return f"not a readable EXR file: truncated or corrupt ({error or native.strip().splitlines()[0]})"
+
+
+def _read(path: str | os.PathLike, header_only: bool = False) -> tuple[dict, list[str], np.ndarray | None]:
+    """(header, channel names, RGB pixels as float32 or None without RGB channels) of EXR file ``path``; a
+    GuidingError of one line when OpenEXR reports a problem."""
+    header, names, pixels, error = {}, [], None, None
+    with _NativeOutput() as native:
+        try:
+            with OpenEXR.File(str(path), header_only=header_only) as exr:
+                header = dict(exr.header())   # a copy: the File empties its own when it closes
+                channels = {} if header_only else exr.channels()
+                names = list(channels)
+                if "RGB" in channels:
+                    pixels = np.array(channels["RGB"].pixels, dtype=np.float32)
+                elif {"R", "G", "B"} <= channels.keys():
+                    pixels = np.stack([channels[c].pixels for c in "RGB"], axis=-1).astype(np.float32)
+        except Exception as caught:  # noqa: BLE001 - OpenEXR reports bad files as RuntimeError or ValueError
+            error = caught
+    # What OpenEXR's core printed counts even when it returned pixels: they may be partly missing.
+    if error is not None or "EXR_ERR_" in native.text or "Exception" in native.text:
+        raise GuidingError(f"cannot read image '{path}': {_exr_problem(path, error, native.text)}")
+    return header, names, pixels
+
+
 def read_exr(path: str | os.PathLike) -> np.ndarray:
-    """Read an RGB EXR as an (H, W, 3) float32 array; a missing, corrupt or non-RGB file is a GuidingError."""
+    """Read an RGB EXR as an (H, W, 3) float32 array; a missing, truncated, corrupt or non-RGB file is a
+    GuidingError of one line (OpenEXR's own messages are captured, not printed)."""
     if os.path.isdir(path):
         raise GuidingError(f"cannot read image '{path}': it is a folder")
     if not os.path.isfile(path):
         raise GuidingError(f"cannot read image '{path}': no such file")
-    try:
-        with OpenEXR.File(str(path)) as exr:
-            channels = exr.channels()
-            if "RGB" in channels:
-                pixels = channels["RGB"].pixels
-            elif {"R", "G", "B"} <= channels.keys():
-                pixels = np.stack([channels[c].pixels for c in "RGB"], axis=-1)
-            else:
-                raise GuidingError(f"cannot read image '{path}': no RGB channels (found {', '.join(channels)})")
-            pixels = np.array(pixels, dtype=np.float32)
-    except GuidingError:
-        raise
-    except Exception as error:  # OpenEXR reports corrupt and truncated files as RuntimeError or ValueError
-        raise GuidingError(f"cannot read image '{path}': not a readable EXR file ({error})") from None
+    _, channels, pixels = _read(path)
+    if pixels is None:
+        raise GuidingError(f"cannot read image '{path}': no RGB channels (found {', '.join(channels) or 'none'})")
     if pixels.ndim != 3 or pixels.shape[2] < 3:
         raise GuidingError(f"cannot read image '{path}': expected an RGB image, got shape {pixels.shape}")
     return pixels[..., :3]
+
+
+def read_exr_metadata(path: str | os.PathLike) -> dict:
+    """The ``guiding/...`` header attributes of an EXR written by :func:`write_exr` (prefix removed; values
+    written as JSON are decoded)."""
+    header, _, _ = _read(path, header_only=True)
+    metadata = {}
+    for name, value in header.items():
+        if name.startswith(METADATA_PREFIX):
+            if isinstance(value, str) and value[:1] in "{[":
+                value = json.loads(value)
+            metadata[name[len(METADATA_PREFIX):]] = value
+    return metadata
 
 
 def to_srgb8(image: np.ndarray, exposure: float = 1.0) -> np.ndarray:

@@ -21,11 +21,13 @@ def _command_output(args: list[str], cwd: str | os.PathLike = PROJECT_ROOT) -> s
     return result.stdout.strip() if result.returncode == 0 else None
 
 
-def _versions() -> dict:
+def software_versions() -> dict:
+    """Versions of Python and of the packages results depend on (None for one not installed)."""
     from importlib import metadata
 
     versions = {"python": platform.python_version()}
-    for package in ("guiding", "mitsuba", "drjit", "numpy", "snakemake", "OpenEXR", "matplotlib", "pandas"):
+    for package in ("guiding", "mitsuba", "drjit", "numpy", "snakemake", "OpenEXR", "matplotlib", "pandas",
+                    "flip-evaluator", "tqdm"):
         try:
             versions[package] = metadata.version(package)
         except metadata.PackageNotFoundError:
@@ -51,7 +53,7 @@ def provenance(config: dict, stats_files: list[str], configfiles: list[str] = ()
     return {
         "config": config, "configfiles": [str(p) for p in configfiles],
         "git": {"commit": commit, "dirty": bool(dirty) if dirty is not None else None},
-        "versions": _versions(),
+        "versions": software_versions(),
         "machine": {"host": socket.gethostname(), "platform": platform.platform(), "cpus": os.cpu_count(),
                     "gpu": _command_output(["nvidia-smi", "--query-gpu=name,driver_version", "--format=csv,noheader"])},
         "renders": [{"experiment": e, "host": h, "device": d, "variant": v, "threads": t, "jobs": n}

@@ -9,6 +9,7 @@ shared Bitterli scenes ``../shared/scenes`` beside the project when present. A p
 from __future__ import annotations
 
 import os
+import re
 import xml.etree.ElementTree as ElementTree
 from collections.abc import Iterable
 from pathlib import Path
@@ -66,6 +67,13 @@ def scaled_resolution(path: str | os.PathLike, scale: float) -> tuple[int, int]:
     return max(1, round(resx * scale)), max(1, round(resy * scale))
 
 
+def _one_line(error: Exception) -> str:
+    """Mitsuba's error message on one line: its lines joined (the first often ends in a colon, the cause follows),
+    without the ``[parser.cpp:1718]`` source location it starts with."""
+    text = " ".join(line.strip() for line in str(error).splitlines() if line.strip())
+    return re.sub(r"^\[[\w.]+:\d+\]\s*", "", text) or type(error).__name__
+
+
 def load_scene(name: str, scale: float = 1.0, extra_dirs: Iterable[str | os.PathLike] = ()):
     """Load scene ``name`` at ``scale`` times its declared resolution (a Mitsuba variant must be set)."""
     import drjit as dr
@@ -80,7 +88,7 @@ def load_scene(name: str, scale: float = 1.0, extra_dirs: Iterable[str | os.Path
         dr.set_thread_count(max(threads, 2))
         return mi.load_file(str(path), resx=resx, resy=resy)
     except Exception as error:  # Mitsuba reports every load failure as a RuntimeError with a long message
-        first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise GuidingError(f"cannot load scene '{name}' ({path}): {first_line}") from None
+        where = f"'{name}'" if str(path) == name else f"'{name}' ({path})"
+        raise GuidingError(f"cannot load scene {where}: {_one_line(error)}") from None
     finally:
         dr.set_thread_count(threads)

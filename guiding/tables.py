@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 from .harness import RULE_LABELS, SAMPLER_LABELS
+from .metrics import METRICS
 
 # ------------------------------------------------------------------------------- published numbers (MAE)
 
@@ -58,10 +59,11 @@ PAPER_EQUAL_TIME = {
                     "ours": 0.1029},
 }
 
+#: The metrics of every render (guiding.metrics.evaluate) beside the paper's MAE, in the order the CSVs show them.
+OTHER_METRICS = [m for m in METRICS if m != "mae"]
 RUN_COLUMNS = ["experiment", "scene", "method", "cli_method", "label", "seed", "budget", "scale", "resolution", "spp",
                "seconds", "render_seconds", "compile_seconds", "budget_seconds_counted", "hit_rate", "mae",
-               "mae_hdr", "relmse", "nonfinite_pixels", "host", "device", "variant", "threads", "mitsuba", "drjit",
-               "date"]
+               *OTHER_METRICS, "nonfinite_pixels", "host", "device", "variant", "threads", "mitsuba", "drjit", "date"]
 
 
 def paper_value(experiment: str, row: dict) -> float:
@@ -98,9 +100,10 @@ def runs_frame(rows: list[dict]) -> pd.DataFrame:
                   **{k: prov.get(k) for k in ("host", "device", "variant", "threads", "mitsuba", "drjit", "date")}}
         records.append(record)
     frame = pd.DataFrame.from_records(records)
-    for column in ("mae", "mae_hdr", "relmse"):
-        if column in frame:
-            frame[column] = pd.to_numeric(frame[column], errors="coerce")  # null (non-finite pixels) -> NaN
+    # Renders evaluated before a metric existed have no value for it: NaN, like a metric of non-finite pixels (null).
+    frame = frame.reindex(columns=[*frame.columns, *(m for m in METRICS if m not in frame.columns)])
+    for column in METRICS:
+        frame[column] = pd.to_numeric(frame[column], errors="coerce")
     extra = [c for c in frame.columns if c not in RUN_COLUMNS]
     return frame[[c for c in RUN_COLUMNS if c in frame.columns] + extra]
 
@@ -108,9 +111,9 @@ def runs_frame(rows: list[dict]) -> pd.DataFrame:
 def cells_frame(runs: pd.DataFrame, experiment: str, keys: list[str]) -> pd.DataFrame:
     """Mean over seeds per cell (``keys``), with the spread, the seed count and the paper's number."""
     grouped = runs.groupby(keys, sort=False, dropna=False)
-    cells = grouped.agg(mae=("mae", "mean"), mae_std=("mae", "std"), mae_hdr=("mae_hdr", "mean"),
-                        relmse=("relmse", "mean"), seeds=("seed", "count"), spp=("spp", "mean"),
-                        render_seconds=("render_seconds", "mean"), hit_rate=("hit_rate", "mean"),
+    cells = grouped.agg(mae=("mae", "mean"), mae_std=("mae", "std"),
+                        **{metric: (metric, "mean") for metric in OTHER_METRICS}, seeds=("seed", "count"),
+                        spp=("spp", "mean"), render_seconds=("render_seconds", "mean"), hit_rate=("hit_rate", "mean"),
                         nonfinite_pixels=("nonfinite_pixels", "sum"), device=("device", _joined)).reset_index()
     first = grouped.first().reset_index()
     for column in ("cli_method", "label", "S", "D", "rule", "sampler", "extra"):
@@ -188,7 +191,7 @@ def table1(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
         rows = [[f"**{S}**", *[ours_paper(lookup.get((S, D))) for D in spec["D"]]] for S in spec["S"]]
         parts.append(f"## {scene}\n\n" + markdown_table(["S \\ D", *map(str, spec["D"])], rows))
     parts.append(provenance_note(runs, spec["timed"]))
-    columns = ["scene", "S", "D", "method", "cli_method", "mae", "mae_std", "seeds", "paper_mae", "mae_hdr", "relmse",
+    columns = ["scene", "S", "D", "method", "cli_method", "mae", "mae_std", "seeds", "paper_mae", *OTHER_METRICS,
                "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
     return cells[columns], "\n\n".join(parts) + "\n"
 
@@ -214,7 +217,7 @@ def table2(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
         if column not in cells:
             cells[column] = None
     columns = ["scene", "rule", "sampler", "method", "cli_method", "label", "mae", "mae_std", "seeds", "paper_mae",
-               "mae_hdr", "relmse", "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
+               *OTHER_METRICS, "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
     return cells[columns], "\n\n".join(parts) + "\n"
 
 
@@ -237,7 +240,7 @@ def equal_time(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
         "Samples reached, render + update time (compilation excluded), hit rate:",
         markdown_table(["scene", *labels], spp_rows),
         provenance_note(runs, spec["timed"])]) + "\n"
-    columns = ["scene", "method", "cli_method", "label", "mae", "mae_std", "seeds", "paper_mae", "mae_hdr", "relmse",
+    columns = ["scene", "method", "cli_method", "label", "mae", "mae_std", "seeds", "paper_mae", *OTHER_METRICS,
                "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
     return cells[columns], text
 
@@ -254,8 +257,7 @@ def curve_rows(rows: list[dict]) -> list[dict]:
         for i, point in enumerate(curve):
             final = i == len(curve) - 1
             points.append({**row, "budget": row["budget"] if final else f"spp{point['spp']}",
-                           **{k: point.get(k, row.get(k)) for k in ("mae", "mae_hdr", "relmse", "nonfinite_pixels",
-                                                                     "render_seconds")},
+                           **{k: point.get(k, row.get(k)) for k in (*METRICS, "nonfinite_pixels", "render_seconds")},
                            "stats": {**row.get("stats", {}), "spp": point["spp"]}})
     return points
 
@@ -280,7 +282,7 @@ def convergence(spec: dict, runs: pd.DataFrame, points: pd.DataFrame | None = No
         "the spp columns are points on one render's curve.",
         markdown_table(["scene", "method", *budgets], rows),
         provenance_note(runs, spec["timed"])]) + "\n"
-    columns = ["scene", "method", "cli_method", "label", "budget", "mae", "mae_std", "seeds", "mae_hdr", "relmse",
+    columns = ["scene", "method", "cli_method", "label", "budget", "mae", "mae_std", "seeds", *OTHER_METRICS,
                "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
     return cells[columns], text
 

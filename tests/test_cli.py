@@ -1,14 +1,26 @@
-"""The command line: the documented forms work, and bad input gets one line, a non-zero exit and no output."""
+"""The command line: the documented forms work (image metadata, strict JSON, error maps, show-guide), and bad input
+gets one line, a non-zero exit and no output (not even an empty folder)."""
 
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from guiding import imageio
+from guiding import backend, guide_state, imageio
 from guiding.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _png(path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as image:
+        assert image.format == "PNG"
+        return np.asarray(image)
 
 
 def _one_error_line(capsys):
@@ -17,25 +29,58 @@ def _one_error_line(capsys):
     return err[0]
 
 
+def strict_load(path) -> dict:
+    """A JSON file parsed as strict readers do: NaN and Infinity are no JSON."""
+    def refuse(token):
+        raise ValueError(f"{path}: non-standard JSON token {token}")
+
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
 def test_render_and_evaluate(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["render", "--scene", "cornell", "--scale", "0.1", "--method", "brdf", "--spp", "8",
-                 "--out", str(out), "--quiet"]) == 0
+                 "--out", str(out), "--quiet", "--seed", "5"]) == 0
     assert {p.name for p in out.iterdir()} == {"image.exr", "preview.png", "stats.json"}
-    stats = json.loads((out / "stats.json").read_text())
+    stats = strict_load(out / "stats.json")
     assert stats["spp"] == 8 and stats["method"] == "brdf" and stats["resolution"] == [26, 26]
     assert stats["provenance"]["variant"] == "llvm_ad_rgb" and len(stats["per_pass"]) == 1
     capsys.readouterr()
-    assert main(["evaluate", str(out / "image.exr"), str(out / "image.exr")]) == 0
+    assert main(["evaluate", str(out / "image.exr"), str(out / "image.exr"), "--error-map",
+                 str(tmp_path / "flip.png")]) == 0
     metrics = json.loads(capsys.readouterr().out)
     assert metrics["mae"] == 0 and metrics["nonfinite_pixels"] == 0
+    assert {"flip", "mse", "smape", "relmse_trimmed"} <= set(metrics) and metrics["flip"] == 0
+    assert _png(tmp_path / "flip.png").shape[2] in (3, 4)
 
 
-def test_reference_writes_outputs(tmp_path):
+def test_render_exr_carries_what_made_it(tmp_path):
+    """The EXR header says what made the image: method, parameters, spp, seed, scene, variant, versions, device."""
+    import drjit as dr
+    import mitsuba as mi
+
+    out = tmp_path / "run"
+    assert main(["render", "--scene", "cornell", "--scale", "0.1", "--method", "ours-S4-D8", "--spp", "16",
+                 "--seed", "7", "--max-depth", "5", "--out", str(out), "--quiet", "--snapshots"]) == 0
+    metadata = imageio.read_exr_metadata(out / "image.exr")
+    assert (metadata["method"], metadata["spp"], metadata["seed"], metadata["scene"]) == ("ours-S4-D8", 16, 7,
+                                                                                          "cornell")
+    assert metadata["variant"] == "llvm_ad_rgb" and metadata["device"].startswith("CPU: ")
+    assert metadata["versions"]["mitsuba"] == mi.__version__ and metadata["versions"]["drjit"] == dr.__version__
+    assert metadata["versions"]["guiding"] and metadata["versions"]["flip-evaluator"]
+    assert metadata["parameters"]["max_depth"] == 5 and metadata["parameters"]["budget"]["spp"] == 16
+    assert (metadata["guide"]["S"], metadata["guide"]["D"], metadata["guide"]["rule"]) == (4, 8, "sarsa")
+    snapshot = imageio.read_exr_metadata(out / "image_snap00008.exr")
+    assert snapshot["spp"] == 8 and snapshot["method"] == "ours-S4-D8"
+
+
+def test_reference_writes_outputs_and_strict_json(tmp_path):
     out = tmp_path / "ref"
     assert main(["reference", "--scene", "cornell", "--scale", "0.05", "--spp", "16", "--out", str(out),
                  "--quiet"]) == 0
-    assert json.loads((out / "stats.json").read_text())["method"] == "reference-path"
+    stats = strict_load(out / "stats.json")   # Mitsuba's `path` reports no hit rate: null, not NaN
+    assert stats["method"] == "reference-path" and stats["hit_rate"] is None
+    assert imageio.read_exr_metadata(out / "image.exr")["method"] == "reference-path"
 
 
 @pytest.mark.parametrize("args, message", [
@@ -70,7 +115,39 @@ def test_evaluate_bad_files(tmp_path, capsys):
     truncated = tmp_path / "truncated.exr"
     truncated.write_bytes(large.read_bytes()[:60])
     assert main(["evaluate", str(truncated), str(small)]) == 2
-    assert "not a readable EXR" in _one_error_line(capsys)
+    assert "header is truncated or corrupt" in _one_error_line(capsys)
+
+
+def test_broken_scene_is_one_line_and_leaves_no_folder(tmp_path, capsys):
+    broken = tmp_path / "broken.xml"
+    broken.write_text((ROOT / "scenes" / "cornell" / "scene.xml").read_text()
+                      .replace('type="diffuse"', 'type="no-such-bsdf"', 1))
+    out = tmp_path / "new" / "out"
+    assert main(["render", "--scene", str(broken), "--method", "brdf", "--spp", "8", "--out", str(out)]) == 2
+    assert 'failed to instantiate bsdf plugin of type "no-such-bsdf"' in _one_error_line(capsys)
+    assert not (tmp_path / "new").exists()   # the folders the command made are gone again
+    broken.write_text(broken.read_text()[:700])   # cut off: not even XML
+    assert main(["reference", "--scene", str(broken), "--spp", "8", "--out", str(out)]) == 2
+    assert "cannot read scene" in _one_error_line(capsys) and not (tmp_path / "new").exists()
+
+
+@pytest.mark.skipif(backend.cuda_available(), reason="this machine has a GPU driver")
+def test_cuda_variant_without_a_gpu(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["render", "--scene", "cornell", "--method", "brdf", "--spp", "8", "--variant", "cuda_ad_rgb",
+                 "--out", str(out)]) == 2
+    assert "variant cuda_ad_rgb needs an NVIDIA GPU" in _one_error_line(capsys) and not out.exists()
+
+
+def test_truncated_exr_in_a_real_process_is_one_line(tmp_path):
+    """OpenEXR's own lines about the truncated file (its core prints them) do not reach the terminal."""
+    imageio.write_exr(tmp_path / "ref.exr", np.random.default_rng(0).random((64, 48, 3)))
+    data = (tmp_path / "ref.exr").read_bytes()
+    (tmp_path / "cut.exr").write_bytes(data[:len(data) // 2])
+    done = subprocess.run([sys.executable, "-m", "guiding", "evaluate", str(tmp_path / "cut.exr"),
+                           str(tmp_path / "ref.exr")], capture_output=True, text=True)
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.count("\n") == 1 and "cut.exr': not a readable EXR file: truncated or corrupt (" in done.stderr
 
 
 def test_real_process_prints_no_traceback(tmp_path):
@@ -78,3 +155,51 @@ def test_real_process_prints_no_traceback(tmp_path):
                            "--spp", "4", "--out", str(tmp_path / "o")], capture_output=True, text=True)
     assert done.returncode == 2
     assert done.stderr.strip().startswith("error: unknown scene") and "Traceback" not in done.stderr
+
+
+@pytest.fixture(scope="module")
+def saved_guide(tmp_path_factory):
+    """A render of `ours` that saved what its guide learned (render --save-guide)."""
+    out = tmp_path_factory.mktemp("guide") / "run"
+    assert main(["render", "--scene", "cornell", "--scale", "0.1", "--method", "ours", "--spp", "16", "--save-guide",
+                 "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def test_show_guide_draws_a_cell_and_the_first_vertex_of_a_pixel(saved_guide, capsys):
+    capsys.readouterr()
+    state = guide_state.load(saved_guide / "guide.npz")
+    assert state["kind"] == "grid" and state["policy"].shape == (8 ** 3, 2 * 16 ** 2)
+    assert main(["show-guide", str(saved_guide)]) == 0          # the best trained cell by default
+    best = guide_state.best_cell(state)
+    assert f"cell {best} of 512" in capsys.readouterr().out
+    picture = _png(saved_guide / f"guide_cell{best}.png")
+    assert picture.shape[0] > 300 and picture.shape[1] > 600 and picture[..., :3].std() > 10
+    assert main(["show-guide", str(saved_guide), "--pixel", "13", "20", "--out", str(saved_guide / "px.png")]) == 0
+    printed = capsys.readouterr().out
+    point = [float(v) for v in printed.split("p = (")[1].split(")")[0].split(", ")]
+    cell = int(printed.split("; cell ")[1].split(" ")[0])
+    low, high = guide_state.cell_bounds(state, cell)
+    assert all(low - 1e-3 <= point) and all(point <= high + 1e-3)   # the cell is where the pixel's vertex is
+    assert _png(saved_guide / "px.png")[..., :3].std() > 10
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--cell", "512"], "cell 512 does not exist: the guide has cells 0..511"),
+    (["--pixel", "26", "0"], "pixel (26, 0) is outside the 26x26 image"),
+])
+def test_show_guide_bad_input(saved_guide, capsys, args, message):
+    assert main(["show-guide", str(saved_guide), *args]) == 2
+    assert message in _one_error_line(capsys)
+
+
+def test_show_guide_needs_a_saved_guide(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["render", "--scene", "cornell", "--scale", "0.05", "--method", "brdf", "--spp", "8", "--save-guide",
+                 "--out", str(out)]) == 2
+    assert "method 'brdf' learns nothing to save" in _one_error_line(capsys) and not out.exists()
+    assert main(["render", "--scene", "cornell", "--scale", "0.05", "--method", "brdf", "--spp", "8", "--out",
+                 str(out), "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["show-guide", str(out)]) == 2
+    assert "guide.npz': render with --save-guide" in _one_error_line(capsys)

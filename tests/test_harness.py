@@ -147,6 +147,8 @@ def _row(experiment, scene, method, seed, mae, budget="spp1024", spp=1024, secon
     return {"experiment": experiment, "scene": scene, "method": method, "cli_method": method, "label": method.upper(),
             "seed": seed, "budget": budget, "scale": 0.5, "timed": experiment in ("equal_time", "convergence"),
             "mae": mae, "mae_hdr": mae * 2, "relmse": mae * 3, "nonfinite_pixels": 0 if mae is not None else 7,
+            **{name: None if mae is None else mae * k for k, name in enumerate(("mse", "relmse_trimmed", "smape",
+                                                                               "flip"), start=4)},
             "render_seconds": seconds, "stats": {"spp": spp, "seconds": seconds + 0.5, "resolution": [64, 32],
                                                  "hit_rate": 0.25, "compile_seconds": 0.5},
             "provenance": {"host": "box", "device": "CPU: test", "variant": "llvm_ad_rgb", "threads": 2},
@@ -165,8 +167,10 @@ def test_table1_layout_mean_over_seeds_and_paper_numbers():
             for S in (8, 4) for D in (16, 8) for seed in (0, 1)]
     cells, text, runs = tables.build(spec, rows)
     assert len(runs) == 8 and len(cells) == 4 and {"host", "device", "variant", "threads"} <= set(runs.columns)
+    assert {"flip", "mse", "smape", "relmse_trimmed", "mae_hdr", "relmse"} <= set(runs.columns) & set(cells.columns)
     cell = cells[(cells.S == 8) & (cells.D == 16)].iloc[0]
     assert cell.mae == pytest.approx(0.08 + 0.016 + 0.001) and cell.seeds == 2
+    assert cell.flip == pytest.approx(7 * cell.mae) and cell.mse == pytest.approx(4 * cell.mae)
     assert cell.paper_mae == pytest.approx(0.0347)
     assert "| S \\ D | 16 | 8 |" in text and "| **8** | 0.097 / 0.0347 |" in text
     assert "`box`: CPU: test" in text
@@ -290,6 +294,107 @@ def test_figures_draw_from_synthetic_runs(tmp_path):
             assert image.format == "PNG" and min(image.size) > 100
 
 
+def _comparison_job(tmp_path, labels, crop=(0.25, 0.25, 0.5, 0.5)):
+    """Synthetic renders for a comparison figure: a reference with structure and noisier images of it."""
+    rng = np.random.default_rng(2)
+    reference = (rng.random((32, 48, 3)) + np.linspace(0, 2, 48)[None, :, None]).astype(np.float32)
+    imageio.write_exr(tmp_path / "ref.exr", reference)
+    entries = []
+    for i, label in enumerate(labels):
+        image = reference * rng.lognormal(0, 0.3 / (i + 1), reference.shape).astype(np.float32)
+        imageio.write_exr(tmp_path / f"{i}.exr", image)
+        (tmp_path / f"{i}.json").write_text(json.dumps({"mae": 0.5 + i}))
+        entries.append({"label": label, "image": str(tmp_path / f"{i}.exr"), "metrics": str(tmp_path / f"{i}.json")})
+    return {"title": "t", "crop_fraction": 0.3, "rows": [{"scene": "a", "reference": str(tmp_path / "ref.exr"),
+                                                          "crop": list(crop), "entries": entries}]}
+
+
+def test_comparison_shows_each_crops_own_mae_and_its_error_map(tmp_path):
+    from guiding.metrics import mae_tonemapped
+
+    job = _comparison_job(tmp_path, ["BRDF", "Ours"])
+    figure = figures.comparison_figure(job)
+    reference = imageio.read_exr(job["rows"][0]["reference"])
+    x, y, w, h = figures.crop_box(reference.shape, job["rows"][0]["crop"])
+    for i, entry in enumerate(job["rows"][0]["entries"]):
+        crop_ax = next(ax for ax in figure.axes if ax.get_title().startswith(entry["label"] + "\n"))
+        image = imageio.read_exr(entry["image"])
+        crop_mae = mae_tonemapped(image[y:y + h, x:x + w], reference[y:y + h, x:x + w])
+        assert crop_ax.get_xlabel() == f"MAE {crop_mae:.4f}"       # the crop's own MAE, under it
+        assert crop_ax.get_title() == f"{entry['label']}\nimage MAE {0.5 + i:.4f}"   # the image's, by the label
+        assert crop_ax.images[0].get_array().shape[:2] == (h, w)
+    maps = [ax for ax in figure.axes if ax.images and ax.images[0].get_cmap().name == "magma"]
+    assert len(maps) == 2 and all(ax.get_xlabel().startswith("FLIP 0.") for ax in maps)
+    assert all(ax.images[0].get_clim() == (0, 1) for ax in maps)
+    colorbars = [ax for ax in figure.axes if ax.get_ylabel() == "HDR-FLIP error"]
+    assert len(colorbars) == 1
+    assert "MAE under each crop" not in figure.get_suptitle()
+
+
+def test_comparison_of_many_methods_wraps_into_lines_of_readable_crops(tmp_path):
+    """Table 2's 15 methods: rows of at most MAX_COLUMNS crops, not one strip of tiny ones."""
+    job = _comparison_job(tmp_path, [f"M{i}" for i in range(15)])
+    figure = figures.comparison_figure(job)
+    width, height = figure.get_size_inches()
+    assert width / height < 4
+    crops = [ax for ax in figure.axes if ax.get_title().startswith("M")]
+    rows = {round(ax.get_position().y0, 3) for ax in crops}
+    assert len(crops) == 15 and len(rows) == 2 and max(len([a for a in crops if round(a.get_position().y0, 3) == r])
+                                                       for r in rows) == figures.MAX_COLUMNS
+    figure.savefig(tmp_path / "wrapped.png")
+    from PIL import Image
+
+    with Image.open(tmp_path / "wrapped.png") as png:
+        assert png.size[0] / png.size[1] < 4 and png.size[1] > 500
+
+
+def test_heatmap_panels_share_one_colour_scale(tmp_path):
+    pd.DataFrame([{"scene": scene, "S": s, "D": d, "mae": 0.01 * s / d + offset}
+                  for scene, offset in (("a", 0.0), ("b", 0.2)) for s in (8, 4) for d in (16, 8)]).to_csv(
+        tmp_path / "t1.csv", index=False)
+    figure = figures.heatmap_figure(tmp_path / "t1.csv")
+    panels = [ax for ax in figure.axes if ax.images]
+    assert [ax.get_title() for ax in panels] == ["ours: a", "ours: b", "paper (supplement Table 1)"]
+    limits = {ax.images[0].get_clim() for ax in panels}
+    assert len(limits) == 1
+    low, high = limits.pop()
+    assert (low, high) == pytest.approx((0.01 * 4 / 16, 0.2 + 0.01 * 8 / 8))   # ours' extremes, beyond the paper's
+    assert len(figure.axes) == len(panels) + 1          # one colour bar for all
+
+
+def _labelled_ticks(axis) -> list[str]:
+    """Texts of the labelled major ticks of a drawn axis that lie inside its view."""
+    low, high = sorted(axis.get_view_interval())
+    return [label.get_text() for location, label in zip(axis.get_majorticklocs(), axis.get_majorticklabels())
+            if low <= location <= high and label.get_text()]
+
+
+def test_every_convergence_axis_has_labelled_ticks(tmp_path):
+    """Log axes spanning less than a decade (the issue: no y numbers, an x axis showing only "10")."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    paths = []
+    for method, scale in (("brdf", 1.0), ("ours", 0.8)):
+        row = _row("convergence", "a", method, 0, 0.05, budget="30s", spp=256, seconds=30)
+        row["curve"] = [{"spp": s, "render_seconds": 3 * s / 8, "mae": scale * 0.07 * (s / 8) ** -0.6,
+                         "relmse": scale * (s / 8) ** -0.9} for s in (8, 16, 32, 64)]
+        paths.append(tmp_path / f"{method}.json")
+        paths[-1].write_text(json.dumps(row))
+    figure = figures.convergence_figure({"scenes": ["a"]}, [str(p) for p in paths])
+    FigureCanvasAgg(figure).draw()
+    axes = [ax for ax in figure.axes if ax.lines]
+    assert len(axes) == len(figures.CONVERGENCE_ROWS)
+    assert any(ax.get_yscale() == "log" and ax.get_ylim()[1] / ax.get_ylim()[0] < 10 for ax in axes)
+    for ax in axes:
+        assert len(_labelled_ticks(ax.xaxis)) >= 2 and len(_labelled_ticks(ax.yaxis)) >= 2, ax.get_ylabel()
+
+
+def test_log_ticks_label_every_span():
+    assert figures.log_ticks(0.021, 0.07) == [0.03, 0.05, 0.07]
+    assert figures.log_ticks(2.5, 30) == [5, 10, 20]
+    assert figures.log_ticks(1e-3, 10) == [1e-3, 1e-2, 1e-1, 1, 10]
+
+
 def test_evaluate_reads_snapshots_listed_in_stats(tmp_path):
     """The `--snapshots` contract (docs/harness.md): only the files stats.json lists, the final image replacing
     its own snapshot, time from the per-pass record."""
@@ -374,6 +479,9 @@ def test_ci_workflow_runs_end_to_end(ci_run):
     for experiment in ("table1", "table2", "equal_time", "convergence"):
         runs = pd.read_csv(out / "tables" / f"{experiment}_runs.csv")
         assert runs.host.notna().all() and runs.device.str.len().gt(0).all() and (runs.variant == "llvm_ad_rgb").all()
+        for metric in ("flip", "mse", "smape", "relmse_trimmed"):   # beside the paper's MAE, for every render
+            assert _finite(runs, metric) and (runs[metric] > 0).all(), (experiment, metric)
+        assert (runs.flip < 1).all() and (runs.smape < 1).all() and (runs.relmse_trimmed <= runs.relmse).all()
         assert (out / "tables" / f"{experiment}.md").read_text().startswith("# ")
     timed = pd.read_csv(out / "tables" / "equal_time_runs.csv")
     assert (timed.threads == 2).all()  # a timed render took every core given (--cores 2)
@@ -386,6 +494,32 @@ def test_ci_workflow_runs_end_to_end(ci_run):
     assert {r["experiment"] for r in prov["renders"]} == {"table1", "table2", "equal_time", "convergence",
                                                           "reference"}
     assert seconds < 300
+
+
+def test_ci_outputs_are_strict_json_and_carry_their_metadata(ci_run):
+    """Every JSON file parses without NaN/Infinity (a reference's hit rate is null); every EXR says what made it;
+    the jobs' logs show their progress (plain lines, with an ETA) and no error."""
+    workdir, _ = ci_run
+    out = workdir / "results" / "ci"
+
+    def refuse(token):
+        raise ValueError(f"non-standard JSON token {token}")
+
+    files = sorted(out.rglob("*.json"))
+    assert len(files) > 30   # every stats.json and metrics.json, provenance.json
+    for path in files:
+        json.loads(path.read_text(), parse_constant=refuse)
+    reference = next((out / "references").rglob("stats.json"))
+    assert json.loads(reference.read_text())["hit_rate"] is None
+    render = out / "renders" / "table2" / "door-ajar" / "mc-sphere_inv" / "spp16" / "seed0"
+    metadata = imageio.read_exr_metadata(render / "image.exr")
+    assert (metadata["method"], metadata["scene"], metadata["seed"], metadata["spp"]) == ("mc-sphere_inv",
+                                                                                          "door-ajar", 0, 16)
+    assert metadata["variant"] == "llvm_ad_rgb" and metadata["threads"] == 1 and metadata["versions"]["mitsuba"]
+    assert metadata["guide"]["rule"] == "mc" and metadata["parameters"]["scale"] == 0.1
+    assert imageio.read_exr_metadata(reference.parent / "image.exr")["method"] == "reference-path"
+    log = (out / "logs" / "render" / "table2" / "door-ajar" / "mc-sphere_inv" / "spp16" / "seed0.log").read_text()
+    assert "render: 16/16 spp (100%), " in log and "ETA" in log and "\r" not in log
 
 
 def test_second_run_has_nothing_to_do(ci_run):
@@ -404,12 +538,62 @@ def test_single_run_rerun_redoes_that_render_and_what_depends_on_it(ci_run):
     assert counts["table"] == 1 and "reference" not in counts
 
 
-def test_report_with_provenance(ci_run):
+def _report_files(report: Path) -> dict[str, bytes]:
+    """File name -> content of every result embedded in a Snakemake HTML report (as data URIs)."""
+    import base64
+    import re
+
+    return {name: base64.b64decode(data) for name, data in
+            re.findall(r"filename=([^;\"]+);base64,([A-Za-z0-9+/=]+)", report.read_text())}
+
+
+def test_report_after_the_run_holds_every_table_figure_and_the_provenance(ci_run):
+    """`snakemake --report FILE` after the run, without repeating --configfile: it reports the configuration that
+    ran (the issue: "table1.csv marked for report but does not exist")."""
     workdir, _ = ci_run
     report = workdir / "report.html"
-    result = snakemake("--configfile", CI_CONFIG, "--directory", workdir, "--report", report)
+    result = snakemake("--directory", workdir, "--report", report)
     assert result.returncode == 0, result.stderr[-2000:]
-    assert report.stat().st_size > 10000 and "provenance.html" in result.stdout + result.stderr
+    embedded = _report_files(report)
+    out = workdir / "results" / "ci"
+    expected = [out / "tables" / f"{e}{suffix}" for e in ("table1", "table2", "equal_time", "convergence")
+                for suffix in (".csv", ".md", "_runs.csv")]
+    expected += [out / "figures" / f"{name}.png" for name in ("table1_heatmap", "equal_time_comparison",
+                                                               "convergence")]
+    expected.append(out / "provenance.html")
+    for path in expected:
+        assert embedded.get(path.name) == path.read_bytes(), path.name
+    assert b"| **cornell** |" in embedded["equal_time.md"]   # the paper's layout, in the report
+
+
+def test_a_failing_job_prints_its_cause(tmp_path):
+    """A job's one-line error is printed by the workflow itself, not only written to the job's log."""
+    import yaml
+
+    (tmp_path / "scenes" / "broken").mkdir(parents=True)
+    (tmp_path / "scenes" / "broken" / "scene.xml").write_text(
+        (ROOT / "scenes" / "cornell" / "scene.xml").read_text().replace('type="diffuse"', 'type="no-such-bsdf"', 1))
+    config = ci_config()
+    config.update(scene_dirs=[str(tmp_path / "scenes")], scenes={"broken": {"scale": 0.1}}, figures={"comparison": []},
+                  experiments={"equal_time": {"scenes": ["broken"], "budget": "equal_spp", "timed": False,
+                                              "methods": ["brdf"]}})
+    (tmp_path / "broken.yaml").write_text(yaml.safe_dump(config))
+    result = snakemake("--cores", 1, "--configfile", tmp_path / "broken.yaml", "--directory", tmp_path / "work",
+                       "--keep-going")
+    assert result.returncode != 0
+    causes = [line for line in result.stderr.splitlines() if line.startswith("job failed: ")]
+    assert len(causes) == 2   # the reference and the render
+    assert all("error: cannot load scene 'broken'" in line and 'type "no-such-bsdf"' in line and "(log: " in line
+               for line in causes)
+
+
+def test_job_failure_names_the_cause():
+    log = "render: 8/16 spp (50%)\nTraceback (most recent call last):\n  ...\nValueError: bad things\n"
+    assert harness.job_failure(log, 1) == "ValueError: bad things"
+    assert harness.job_failure("render: 8/16\nerror: unknown scene 'x'\n", 2) == "error: unknown scene 'x'"
+    assert harness.job_failure("render: 8/16 spp (50%)\n", 137) == ("killed by signal 9 (log ends: render: 8/16 spp "
+                                                                  "(50%))")
+    assert harness.job_failure("", 1) == "exit status 1, nothing in its log"
 
 
 def test_bad_config_is_rejected_before_any_job(tmp_path):

@@ -1,4 +1,7 @@
-"""Image I/O, the scene search path, and the backend's start-up checks."""
+"""Image I/O (EXR metadata, truncated files), strict JSON, the scene search path and broken scenes, and the backend's
+start-up checks."""
+
+import json
 
 import numpy as np
 import pytest
@@ -76,3 +79,62 @@ def test_scene_with_nested_parallel_loading_loads_on_one_thread(tmp_path):
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "out" / "image.exr").exists()
+
+
+def test_exr_metadata_round_trip(tmp_path):
+    metadata = {"method": "ours", "spp": 64, "seed": 3, "parameters": {"max_depth": 16, "seconds": float("nan")},
+                "versions": {"mitsuba": "3.9.1"}}
+    imageio.write_exr(tmp_path / "a.exr", np.zeros((2, 3, 3)), metadata)
+    assert imageio.read_exr_metadata(tmp_path / "a.exr") == {**metadata, "parameters": {"max_depth": 16,
+                                                                                         "seconds": None}}
+
+
+@pytest.mark.parametrize("keep", [60, 400, 0.5, -1])
+def test_truncated_exr_is_one_line_and_nothing_from_openexr(tmp_path, capfd, keep):
+    """OpenEXR's core prints its own lines (stdout and stderr) about a truncated file; they are captured, and the
+    error says what is wrong in one line."""
+    imageio.write_exr(tmp_path / "full.exr", np.random.default_rng(0).random((64, 48, 3)))
+    data = (tmp_path / "full.exr").read_bytes()
+    cut = {0.5: len(data) // 2, -1: len(data) - 1}.get(keep, keep)   # in the header, in the pixels, the last byte
+    (tmp_path / "cut.exr").write_bytes(data[:cut])
+    with pytest.raises(GuidingError) as error:
+        imageio.read_exr(tmp_path / "cut.exr")
+    message = str(error.value)
+    assert "\n" not in message and ("truncated or corrupt" in message) and "cut.exr" in message
+    assert capfd.readouterr() == ("", "")
+
+
+def test_strict_json_has_no_nan_or_infinity():
+    from guiding import strict_json
+
+    text = strict_json.dumps({"hit_rate": float("nan"), "values": [np.float32(np.inf), np.int64(3), (1.5, -np.inf)],
+                              "array": np.array([1.0, np.nan])})
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text) == {"hit_rate": None, "values": [None, 3, [1.5, None]], "array": [1.0, None]}
+
+
+def test_broken_scene_is_one_line_naming_the_cause(tmp_path):
+    broken = tmp_path / "broken.xml"
+    broken.write_text((scenes.PROJECT_ROOT / "scenes" / "cornell" / "scene.xml").read_text()
+                      .replace('type="diffuse"', 'type="no-such-bsdf"', 1))
+    with pytest.raises(GuidingError) as error:
+        scenes.load_scene(str(broken), 0.1)
+    message = str(error.value)
+    assert "\n" not in message and 'plugin of type "no-such-bsdf"' in message and "[parser.cpp" not in message
+
+
+@pytest.mark.skipif(backend.cuda_available(), reason="this machine has an NVIDIA driver")
+def test_cuda_variant_without_a_gpu_names_the_fix():
+    with pytest.raises(backend.BackendError) as error:
+        backend.set_variant("cuda_ad_rgb")
+    assert "needs an NVIDIA GPU" in str(error.value) and "--variant llvm_ad_rgb" in str(error.value)
+
+
+def test_cuda_driver_without_a_device_names_the_fix(monkeypatch):
+    import drjit as dr
+
+    if dr.has_backend(dr.JitBackend.CUDA):
+        pytest.skip("this machine has a CUDA device")
+    monkeypatch.setattr(backend, "cuda_available", lambda: True)   # a driver, but no device Dr.Jit can start
+    with pytest.raises(backend.BackendError, match="cannot start a CUDA device.*--variant llvm_ad_rgb"):
+        backend.set_variant("cuda_ad_rgb")

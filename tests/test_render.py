@@ -173,3 +173,25 @@ def test_inverse_variance_combination_weights():
     np.testing.assert_allclose(image, 2.0 / 3 + 8.0 / 3)
     image, weights = combine_iterations(images, [None, None, None])   # no estimate: the last image alone
     assert weights == [0.0, 0.0, 1.0] and (image == 4.0).all()
+
+
+def test_progress_lines_off_a_terminal_and_a_bar_with_eta_on_request(cornell, capsys, monkeypatch):
+    """Not on a terminal (a Snakemake log) the default is plain lines with an ETA, at most one per
+    PROGRESS_LINE_SECONDS and one at the end; progress=True is tqdm's bar; False shows nothing."""
+    import guiding.render as render_module
+
+    integrator = GuidedPathIntegrator()
+    monkeypatch.setattr(render_module, "PROGRESS_LINE_SECONDS", 1e9)   # a slow machine must not add lines
+    render(cornell, integrator, Budget(spp=24, pass_spp=8))          # stderr is pytest's capture: no terminal
+    lines = capsys.readouterr().err.splitlines()   # the first pass, then (none due in between) the last
+    assert [line.split(",")[0] for line in lines] == ["render: 8/24 spp (33%)", "render: 24/24 spp (100%)"]
+    assert all("elapsed, ETA" in line for line in lines)
+    monkeypatch.setattr(render_module, "PROGRESS_LINE_SECONDS", 0.0)
+    render(cornell, integrator, Budget(seconds=0.3, pass_spp=8))
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) >= 3 and all(" s counted (" in line and "ETA" in line and " spp" in line for line in lines)
+    render(cornell, integrator, Budget(spp=16, pass_spp=8), progress=True)
+    bar = capsys.readouterr().err
+    assert "\r" in bar and "16/16 spp" in bar and "100%|" in bar and "<00:00" in bar   # [elapsed<remaining]
+    render(cornell, integrator, Budget(spp=16, pass_spp=8), progress=False)
+    assert capsys.readouterr().err == ""
