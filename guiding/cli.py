@@ -26,6 +26,9 @@ EXIT_INTERRUPTED = 130
 
 #: What ``bench`` times by default: the shared scenes (method.md) and every kind of method.
 BENCH_SCENES = ("cornell-box", "veach-ajar", "staircase2", "living-room")
+#: Benchmarked beside them: the project's scene without a guidable surface (256x256 at scale 1), where every guided
+#: method should cost what brdf does.
+BENCH_EXTRA_SCENES = ("glossy-box:1",)
 #: The paper's hemi_inv without the BSDF share, shown beside ours in the single-bounce weight table.
 PURE_HEMI_INV = ("mc-hemi_inv-pure", "sarsa-hemi_inv-pure", "expected_sarsa-hemi_inv-pure")
 BENCH_METHODS = ("ours", "ours-uniform-proposals", "ours-no-rejopt", "ours-expected", "sarsa-sphere_inv",
@@ -127,12 +130,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = commands.add_parser("bench", help="cost per spp of every method vs `brdf` and Mitsuba's `path` "
                                 "(same process, interleaved passes)")
-    bench.add_argument("--scenes", default=",".join(f"{s}:0.25" for s in BENCH_SCENES),
-                       help="comma-separated NAME:SCALE list (default: the four shared scenes at 1/4 resolution)")
+    bench.add_argument("--scenes", default=",".join([*(f"{s}:0.25" for s in BENCH_SCENES), *BENCH_EXTRA_SCENES]),
+                       help="comma-separated NAME:SCALE list (default: the four shared scenes at 1/4 resolution and "
+                            "glossy-box, the scene without a guidable surface)")
     bench.add_argument("--passes", type=_positive_int, default=8, help="timed passes per integrator (default 8)")
     bench.add_argument("--methods", default=",".join(BENCH_METHODS),
                        help="methods timed against brdf and path (comma-separated)")
     bench.add_argument("--out", default="results/bench", help="output folder (default results/bench)")
+    bench.add_argument("--no-breakdown", action="store_true",
+                       help="skip the cost breakdown (the guided methods' stages, results/bench/cost_breakdown.md)")
     _add_backend_options(bench)
 
     demo = commands.add_parser("demo", help="the main job: reference, then each method at equal spp, then MAE")
@@ -370,11 +376,22 @@ def _command_bench(args) -> None:
 
     device = device_name(variant)
     tag = "gpu" if variant.startswith("cuda") else "cpu"
-    frame = benchmark(scenes, [m for m in args.methods.split(",") if m], passes=args.passes)
-    command = "python -m guiding bench" + (f" --variant {args.variant}" if args.variant != "auto" else "")
+    frame, breakdown = benchmark(scenes, [m for m in args.methods.split(",") if m], passes=args.passes,
+                                 breakdown=not args.no_breakdown)
+    command = (f"python -m guiding bench --scenes {args.scenes} --methods {args.methods} --passes {args.passes}"
+               + (f" --variant {args.variant}" if args.variant != "auto" else "")
+               + (" --no-breakdown" if args.no_breakdown else ""))
     write_table(frame, out / f"benchmark_{tag}", "Cost per spp of every method vs `brdf` and Mitsuba `path` (same "
-                f"run, {args.passes} interleaved passes of 8 spp after 2 warm-up passes, max depth 16)", device,
+                f"run, {args.passes} interleaved passes of 8 spp after 2 warm-up passes, max depth 16; `trace-only`: "
+                "the throughput limit, `share_of_trace_limit`: rays/s as a fraction of its)", device,
                 command, sections={"Targets": target_table(frame, tag)})
+    if not breakdown.empty:
+        write_table(breakdown, out / "cost_breakdown", "Cost breakdown of every guided method: kernel time per spp "
+                    "with the parts of the bounce switched on one by one (same interleaved run as "
+                    f"benchmark_{tag}; `increment`: the stage's cost over the previous stage, the first over `brdf`; "
+                    "partial stages are a benchmark instrument whose images are not meant to be correct)", device,
+                    command)
+        print(breakdown.to_string(index=False))
     print(frame.to_string(index=False))
 
 

@@ -30,6 +30,9 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
       ``method`` (str, "brdf"): a method name of :mod:`guiding.methods`; ignored when a guide is passed.
       ``pass_spp`` (int, 8): samples per pixel of each pass of ``mi.render``; the guide updates between passes.
       ``seconds`` (float, 0): when positive, ``mi.render`` renders for this many seconds instead of ``spp``.
+      ``statistics`` (bool, false): grid methods only: the guide counts guided vertices, proposals and acceptances
+        per pass (``guided_samples``, ``acceptance_rate``, … in the pass statistics; off by default, they cost
+        atomics on every bounce).
 
     Attributes read by the progressive renderer and the benchmark after each pass: ``path_count``,
     ``hit_count`` (paths with a non-zero contribution) and ``ray_count`` (rays traced), reset by
@@ -52,7 +55,8 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         if guide is None:
             from .methods import make_guide
 
-            guide = make_guide(props.get("method", "brdf"))
+            statistics = props.get("statistics", False)
+            guide = make_guide(props.get("method", "brdf"), **({"statistics": True} if statistics else {}))
         self.guide = guide
         self.last_result = None
         self.reset_counters()

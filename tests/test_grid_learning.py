@@ -132,7 +132,7 @@ def test_guiding_starts_at_the_second_pass(cornell, method):
     from guiding.methods import make_guide
     from guiding.driver import render_pass
 
-    guide = make_guide(method)
+    guide = make_guide(method, statistics=True)
     integrator = GuidedPathIntegrator(guide=guide)
     guide.prepare(cornell)
     guided = []
@@ -140,3 +140,26 @@ def test_guiding_starts_at_the_second_pass(cornell, method):
         render_pass(cornell, integrator, 0, index, 4)
         guided.append(guide.update(4 * (index + 1)).stats["guided_samples"])
     assert guided[0] == 0 and guided[1] > 0, guided
+
+
+def test_statistics_counters_only_when_asked_for(cornell):
+    """The per-pass counters (atomics on every bounce) are off by default: the update reports no counter figures,
+    and the pass's kernel has no counter atomics; ``statistics=True`` brings them back."""
+    from guiding.driver import render_pass
+    from guiding.integrator import GuidedPathIntegrator
+    from guiding.methods import make_guide
+
+    for statistics in (False, True):
+        guide = make_guide("ours", statistics=statistics)
+        integrator = GuidedPathIntegrator(guide=guide)
+        guide.prepare(cornell)
+        for index in range(2):
+            render_pass(cornell, integrator, 0, index, 2)
+            assert not statistics or guide.counters
+            stats = guide.update(2 * (index + 1)).stats
+        counted = {"guided_samples", "invalid_share", "acceptance_rate", "proposals_per_sample"} & set(stats)
+        assert counted == (set() if not statistics else {"guided_samples", "invalid_share", "acceptance_rate",
+                                                         "proposals_per_sample"}), (statistics, stats)
+        assert (guide.counters == {}) == (not statistics)
+        if statistics:
+            assert stats["guided_samples"] > 0

@@ -18,7 +18,7 @@ def test_mi_render_trains_the_guide_like_the_renderer():
     scene = load_scene("door-ajar", scale=0.2)
     reference = render(scene, mi.load_dict({"type": "path", "max_depth": 16}), Budget(spp=1024, pass_spp=64),
                        seed=7, progress=False).image
-    plugin = mi.load_dict({"type": "guided_path", "method": "ours"})
+    plugin = mi.load_dict({"type": "guided_path", "method": "ours", "statistics": True})
     image = np.asarray(mi.render(scene, integrator=plugin, spp=SPP, seed=1))
     renderer = render(scene, GuidedPathIntegrator(guide=make_guide("ours")), Budget(spp=SPP), seed=1,
                       progress=False)

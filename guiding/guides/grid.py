@@ -42,7 +42,7 @@ import mitsuba as mi
 
 from .base import Guide, UpdateResult
 from .grid_record import RadianceRecord, table_needs
-from .parameters import GridParameters, with_overrides
+from .parameters import PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters, with_overrides
 from .vertex_log import NO_RECORD, VertexLog, walk_backward
 
 
@@ -109,6 +109,10 @@ class GridGuide(Guide):
         self.bsdf_fraction = p.bsdf_fraction
         self.max_proposals = p.max_proposals
         self.min_bsdf_share = p.min_bsdf_share
+        self.statistics = p.statistics
+        #: Benchmark instrument: how far the bounce goes (index into PROFILE_STAGES; len = the whole guide).
+        self._stage = PROFILE_STAGES.index(p.profile_stage) if p.profile_stage else len(PROFILE_STAGES)
+        self._updates = 0
         self.record_table = RadianceRecord(
             p.spatial_resolution, p.directional_resolution, p.normal_resolution,
             **table_needs(p.rule, p.sampler, p.proposal), min_exploration=p.min_exploration)
@@ -121,15 +125,17 @@ class GridGuide(Guide):
         self.record_table.set_bounds(scene.bbox())
 
     def update(self, spp_done: int) -> UpdateResult:
-        stats = self._read_counters()
+        stats = self._read_counters() if self.statistics else {}
         stats["memo_pairs"] = self.record_table.update(spp_done)
         stats.update(self.record_table.sanitised)   # bad accumulator entries dropped, Q clamped (grid_record)
         self.trained = True
+        self._updates += 1
         self._reset_counters()
         return UpdateResult(stats)
 
     def records(self) -> bool:
-        return True
+        # A profiled stage (benchmark instrument) learns its tables in the warm-up passes, then records nothing.
+        return self._stage == len(PROFILE_STAGES) or self._updates < PROFILE_TRAINING_PASSES
 
     def stats(self) -> dict:
         table = self.record_table
@@ -140,6 +146,9 @@ class GridGuide(Guide):
                 "memory_bytes": table.memory_bytes()}
 
     def _reset_counters(self) -> None:
+        if not self.statistics:
+            self.counters = {}
+            return
         self.counters = {key: mi.UInt32(0) for key in ("guided", "invalid", "proposals", "rejection_samples",
                                                         "accepted")}
 
@@ -151,6 +160,9 @@ class GridGuide(Guide):
                 "proposals_per_sample": c["proposals"] / c["rejection_samples"] if c["rejection_samples"] else None}
 
     def _count(self, key: str, value, active: mi.Bool) -> None:
+        """One atomic add into a pass counter; nothing is traced unless ``statistics`` is on."""
+        if not self.statistics:
+            return
         dr.scatter_reduce(dr.ReduceOp.Add, self.counters[key], mi.UInt32(value), mi.UInt32(0), active)
 
     # ============================================================== device side
@@ -163,6 +175,8 @@ class GridGuide(Guide):
             return bs, weight
         vertex = self._vertex(si, bsdf, active)
         guided = vertex.guided
+        if self._stage == 0:      # profile stage "classify": the mask is computed (and used), the BSDF samples
+            return bs, dr.select(guided, weight * 0.5, weight)
         if self.sampler.endswith("_inv"):
             use_guide = guided & (sampler.next_1d(guided) >= self.bsdf_fraction)
             guide_world, guide_bin = self._sample_inversion(sampler, vertex, use_guide)
@@ -172,6 +186,9 @@ class GridGuide(Guide):
             guide_world, use_guide = self._sample_rejection(sampler, vertex, searching)
             chosen_bin = None
         wo = dr.select(use_guide, si.to_local(guide_world), bs.wo)
+        if self._stage == 1:      # profile stage "sample": guided directions, the BSDF's weights
+            bs.wo = wo
+            return bs, weight
         value, pdf = self._eval_pdf(si, bsdf, bsdf_ctx, vertex, wo, chosen_bin)
 
         guided_weight = dr.select(pdf > 0, value / pdf, 0)

@@ -43,8 +43,9 @@ HOSTILE_ENTRIES = {
 
 
 def grid_guide(method: str, S: int = 2, D: int = 4, min_exploration: float | None = None):
-    """A grid guide of ``method`` at resolution S, D over the unit cube (its bounds set, nothing learnt)."""
-    overrides = {"spatial_resolution": S, "directional_resolution": D}
+    """A grid guide of ``method`` at resolution S, D over the unit cube (its bounds set, nothing learnt), with its
+    statistics counters on."""
+    overrides = {"spatial_resolution": S, "directional_resolution": D, "statistics": True}
     if min_exploration is not None:
         overrides["min_exploration"] = min_exploration
     guide = GridGuide(grid_parameters(method), **overrides)

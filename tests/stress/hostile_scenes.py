@@ -7,7 +7,7 @@ import mitsuba as mi
 import numpy as np
 
 from guiding.integrator import GuidedPathIntegrator
-from guiding.methods import make_guide
+from guiding.methods import grid_parameters, make_guide
 from guiding.metrics import nonfinite_pixels
 from guiding.render import Budget, render
 from guiding.validation import Z_LIMIT
@@ -91,7 +91,9 @@ def render_scene(scene_dict: dict, method: str, max_depth: int = 16, seed: int =
     """Render a scene (a ``mi.load_dict`` dictionary) with ``method``: ``passes`` passes of SCENE_PASS_SPP spp."""
     props = mi.Properties()
     props["max_depth"] = max_depth
-    integrator = GuidedPathIntegrator(props, guide=make_guide(method))
+    # Grid guides count what they sample (statistics on): the checks below read the counters.
+    guide = make_guide(method, statistics=True) if grid_parameters(method) is not None else make_guide(method)
+    integrator = GuidedPathIntegrator(props, guide=guide)
     images = []
     result = render(mi.load_dict(scene_dict), integrator, Budget(spp=passes * SCENE_PASS_SPP,
                                                                  pass_spp=SCENE_PASS_SPP),

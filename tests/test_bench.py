@@ -1,0 +1,25 @@
+"""The benchmark's cost breakdown and throughput limit on a tiny run (one timed pass, a 16x16 image)."""
+
+import pytest
+
+from guiding.bench import GRID_STAGES, TRACE_ONLY, TREE_STAGES, benchmark, target_table
+
+
+def test_breakdown_table_shape():
+    frame, breakdown = benchmark([("glossy-box", 1 / 16)], ["ours", "sdtree"], passes=1, pass_spp=1, max_depth=4)
+    assert list(frame["method"]) == ["path", TRACE_ONLY, "brdf", "ours", "sdtree"]
+    assert frame.set_index("method").loc[TRACE_ONLY, "share_of_trace_limit"] == pytest.approx(1)
+    assert (frame.set_index("method").loc[["brdf", "ours", "sdtree"], "share_of_trace_limit"] > 0).all()
+    stages = [stage for stage, _, _ in GRID_STAGES] + [stage for stage, _, _ in TREE_STAGES]
+    assert list(breakdown["stage"]) == stages
+    assert list(breakdown["method"]) == ["ours"] * len(GRID_STAGES) + ["sdtree"] * len(TREE_STAGES)
+    full = breakdown.set_index("integrator").loc["ours"]
+    assert full["ratio_to_brdf"] == frame.set_index("method").loc["ours", "ratio_to_brdf"]
+    # The increments add up to each method's last stage (the first is counted from brdf).
+    for method, rows in breakdown.groupby("method"):
+        assert abs(1 + rows["increment_ratio"].sum() - rows["ratio_to_brdf"].iloc[-1]) < 1e-9
+    # The statistics variant supplies the guided share (zero: glossy-box has no guidable surface).
+    assert frame.set_index("method").loc["ours", "guided_per_ray"] == 0
+    targets = target_table(frame, "cpu")
+    assert {"no guidable surface: `ours` ≤ 1.05× `brdf`", "no guidable surface: `sdtree` ≤ 1.05× `brdf`"} \
+        <= set(targets["target"])
