@@ -52,7 +52,7 @@ def _grid_state(record) -> dict:
     bins = record.bins.count
     return {"kind": "grid", **_cells_state(record.grid), "D": record.bins.resolution,
             "policy": np.asarray(record.policy.numpy(), np.float32).reshape(record.cells, bins),
-            "weight": record.acc_count.numpy().reshape(record.cells, bins).sum(axis=1)}
+            "weight": record.totals()[1].reshape(record.cells, bins).sum(axis=1)}
 
 
 def _dtree_state(forest) -> dict:

@@ -135,11 +135,12 @@ def single_bounce_weights(guide: Guide, vertices: mi.SurfaceInteraction3f, sampl
 #  A guide's sampler at one synthetic vertex
 # =====================================================================================================================
 def diffuse_vertex(normal, size: int, position=(0.05, 0.05, 0.05)) -> tuple[mi.SurfaceInteraction3f, mi.BSDFPtr]:
-    """``size`` lanes of one surface interaction at ``position`` with shading ``normal``, reached from the normal's
-    side (``wi`` is the local +z), and a diffuse BSDF of albedo 0.5 for it."""
+    """``size`` lanes of one surface interaction at ``position`` with shading ``normal`` (normalised: a frame built
+    on a longer vector is not orthonormal, and ``to_world(to_local(ω))`` then misses ω by ~1e-4), reached from the
+    normal's side (``wi`` is the local +z), and a diffuse BSDF of albedo 0.5 for it."""
     si = dr.zeros(mi.SurfaceInteraction3f, size)
     si.p = mi.Point3f(*position)
-    si.n = mi.Normal3f(*(float(c) for c in normal))
+    si.n = dr.normalize(mi.Normal3f(*(float(c) for c in normal)))
     si.sh_frame = mi.Frame3f(si.n)
     si.wi = mi.Vector3f(0, 0, 1)
     return si, mi.BSDFPtr(_diffuse_bsdf())

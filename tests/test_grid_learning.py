@@ -51,7 +51,7 @@ def _run_path(guide, scene, continue_last=False):
 def _recorded(guide):
     """{index: (sum, count)} of every (cell, bin) that received a target."""
     record = guide.record_table
-    sums, counts = record.acc_sum.numpy(), record.acc_count.numpy()
+    sums, counts = record.totals()
     return {int(i): (sums[i], counts[i]) for i in np.flatnonzero(counts)}
 
 

@@ -19,16 +19,16 @@ samplers α = 1 − (1 − u)·(1 − r): u = max(ε_r, ``min_bsdf_share``), whe
 into the target instead (ours draws it from the BSDF: a weight bound of 2ρ rather than 4ρ at ε_r = ½), and r, the
 share of loops that exhaust ``max_proposals`` and fall back to the BSDF's direction.
 
-The rejection target uses the normal bin's centre ``n_c`` (accept with ``cos(ω, n_c)``): the memoised
-``N = ∫ P·cos⁺(ω, n_c)`` is exact for it at every true normal, so the samplers are exact by construction (with N
-taken at n_c but the cosine at the true normal, each bounce was off by N(n_c)/N(n): ``ours`` was +1.25 ± 0.29 %
-off ``path`` on the tilted Cornell box). Target directions below the true surface have f = 0 and weight 0. The loop proposes with one of:
-  ``uniform``  uniform directions on the hemisphere of n_c, accepted if ``ξ·M < P·cos(ω, n_c)``; acceptance
-               ``a = N/(2π·M)``, a few percent once P is peaked (the paper's loop);
-  ``policy``   directions from the cell's sphere policy (CDF over the 2D² bins, uniform in the bin) accepted with
-               probability ``cos(ω, n_c)``; ``a = N·2D²/(4π)``, the policy's mean cosine, independent of how peaked
-               P is.
-With ``r = (1 − a)^max_proposals``.
+The rejection target uses the normal bin's centre ``n_c``: the memoised ``N = ∫ P·cos⁺(ω, n_c)`` is exact for it
+at every true normal, so the samplers are exact by construction (with N taken at n_c but the cosine at the true
+normal, each bounce was off by N(n_c)/N(n): ``ours`` was +1.25 ± 0.29 % off ``path`` on the tilted Cornell box).
+Target directions below the true surface have f = 0 and weight 0. The target is drawn with one of the proposals:
+  ``bins``     without a loop over the sphere: a bin k from the pair's memoised CDF of ``P_k·∫_k cos⁺``, then a
+               direction of the bin ∝ ``cos(ω, n_c)`` by rejection against the bin's bound (most bins accept
+               ~90 % of proposals, bins across the horizon less); r, the chance that all ``IN_BIN_PROPOSALS``
+               are rejected, is memoised per pair (``in_bin_miss``), a few parts in 10⁴ on cornell-box;
+  ``uniform``  the paper's loop: uniform directions on the hemisphere of n_c, accepted if ``ξ·M < P·cos(ω, n_c)``;
+               acceptance ``a = N/(2π·M)``, a few percent once P is peaked; ``r = (1 − a)^max_proposals``.
 Pass 0 samples the BSDF only (the tables are empty); it marks the (cell, normal bin) pairs it visits, so the
 hemisphere samplers guide from pass 1.
 """
@@ -41,7 +41,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .base import Guide, UpdateResult
-from .grid_record import RadianceRecord, table_needs
+from .grid_record import IN_BIN_PROPOSALS, RadianceRecord, table_needs
 from .parameters import PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters, with_overrides
 from .vertex_log import NO_RECORD, VertexLog, walk_backward
 
@@ -62,7 +62,8 @@ class _Vertex:
     cell: mi.UInt32
     side: mi.Float
     pair: mi.UInt32 = None
-    norm: mi.Float = None          # N at the normal bin's centre
+    norm: mi.Float = None          # N at the normal bin's centre (0: the pair has no memo yet)
+    row: mi.UInt32 = None          # first entry of the pair's row of ``hemi_cdf``
     centre: mi.Vector3f = None     # n_c, the normal bin's centre on the arrival side (world)
     bound: mi.Float = None         # M ≥ max P·cos(ω, n_c)
     bsdf_share: mi.Float = None    # u = max(ε_r, min_bsdf_share)
@@ -168,54 +169,77 @@ class GridGuide(Guide):
     # ============================================================== device side
     # ---------------------------------------------------------------- sampling
     def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active):
-        bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
         if not self.trained:
             if self.record_table.needs_pairs:
                 self._locate(si, bsdf, active)     # marks the pairs this pass visits: memoised for the next pass
-            return bs, weight
-        vertex = self._vertex(si, bsdf, active)
+            return bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
+        return self._sample_vertex(sampler, si, bsdf, bsdf_ctx, self._vertex(si, bsdf, active), active)
+
+    @dr.syntax
+    def _sample_vertex(self, sampler, si, bsdf, bsdf_ctx, vertex, active):
+        """The guide where the vertex is guided, one BSDF sample elsewhere: a branch, not a select, so that packets
+        of lanes without a guided vertex (glossy, delta, emitters, escaped paths) pay only the mask test."""
+        if vertex.guided:
+            bs, weight = self._guided_sample(sampler, si, bsdf, bsdf_ctx, vertex)
+        else:
+            unguided = active & ~vertex.guided
+            bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(unguided), sampler.next_2d(unguided), unguided)
+        return bs, weight
+
+    def _guided_sample(self, sampler, si, bsdf, bsdf_ctx, vertex) -> tuple[mi.BSDFSample3f, mi.Spectrum]:
+        """The one-sample mixture of BSDF sampling and the guide at the guided lanes: one BSDF call gives its sample,
+        and its value and density at the guide's direction."""
         guided = vertex.guided
         if self._stage == 0:      # profile stage "classify": the mask is computed (and used), the BSDF samples
-            return bs, dr.select(guided, weight * 0.5, weight)
+            bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(guided), sampler.next_2d(guided), guided)
+            return bs, weight * 0.5
         if self.sampler.endswith("_inv"):
             use_guide = guided & (sampler.next_1d(guided) >= self.bsdf_fraction)
             guide_world, guide_bin = self._sample_inversion(sampler, vertex, use_guide)
-            chosen_bin = dr.select(use_guide, guide_bin, self.record_table.bins.index(si.to_world(bs.wo)))
         else:
             searching = guided & (sampler.next_1d(guided) >= vertex.bsdf_share)
-            guide_world, use_guide = self._sample_rejection(sampler, vertex, searching)
-            chosen_bin = None
-        wo = dr.select(use_guide, si.to_local(guide_world), bs.wo)
+            guide_world, guide_bin, use_guide = self._sample_rejection(sampler, vertex, searching)
+        guide_wo = si.to_local(guide_world)
+        guide_value, guide_bsdf_pdf, bs, bsdf_weight = bsdf.eval_pdf_sample(
+            bsdf_ctx, si, guide_wo, sampler.next_1d(guided), sampler.next_2d(guided), guided)
         if self._stage == 1:      # profile stage "sample": guided directions, the BSDF's weights
-            bs.wo = wo
-            return bs, weight
-        value, pdf = self._eval_pdf(si, bsdf, bsdf_ctx, vertex, wo, chosen_bin)
+            bs.wo = dr.select(use_guide, guide_wo, bs.wo)
+            return bs, bsdf_weight
+        value = dr.select(use_guide, guide_value, bsdf_weight * bs.pdf)
+        bsdf_pdf = dr.select(use_guide, guide_bsdf_pdf, bs.pdf)
+        world = dr.select(use_guide, guide_world, si.to_world(bs.wo))
+        chosen_bin = None
+        if guide_bin is not None:
+            chosen_bin = dr.select(use_guide, guide_bin, self.record_table.bins.index(world))
+        pdf = self._mixture_pdf(vertex, world, bsdf_pdf, chosen_bin)
 
-        guided_weight = dr.select(pdf > 0, value / pdf, 0)
+        weight = dr.select(pdf > 0, value / pdf, 0)
         self._count("guided", 1, guided)
-        self._count("invalid", 1, guided & dr.all(guided_weight == 0))
-        bs.wo = dr.select(guided, wo, bs.wo)
-        bs.pdf = dr.select(guided, pdf, bs.pdf)
+        self._count("invalid", 1, guided & dr.all(weight == 0))
+        bs.wo = dr.select(use_guide, guide_wo, bs.wo)
+        bs.pdf = pdf
         bs.sampled_type = dr.select(use_guide, mi.UInt32(mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
         bs.eta = dr.select(use_guide, 1.0, bs.eta)
-        return bs, dr.select(guided, guided_weight, weight)
+        return bs, weight
 
     def pdf(self, si, bsdf, bsdf_ctx, wo, active) -> mi.Float:
         """Density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si``."""
+        bsdf_pdf = bsdf.pdf(bsdf_ctx, si, wo, active)
         if not self.trained:
-            return bsdf.pdf(bsdf_ctx, si, wo, active)
+            return bsdf_pdf
         vertex = self._vertex(si, bsdf, active, mark_visited=False)
-        _, pdf = self._eval_pdf(si, bsdf, bsdf_ctx, vertex, wo)
-        return dr.select(vertex.guided, pdf, bsdf.pdf(bsdf_ctx, si, wo, active))
+        return dr.select(vertex.guided, self._mixture_pdf(vertex, si.to_world(wo), bsdf_pdf), bsdf_pdf)
 
     def _locate(self, si, bsdf, active, mark_visited=True) -> "_Vertex":
-        """The vertex's cell, arrival side and (cell, normal bin) pair; marks the pair visited."""
+        """The vertex's cell, arrival side, (cell, normal bin) pair and its N; marks a pair without memo visited
+        (the memoised ones stay marked: written at every vertex, the flags cost the cores' caches a line each)."""
         table = self.record_table
         vertex = _Vertex(guided=active & guidable(bsdf), cell=table.cell(si.p), side=_arrival_side(si))
         if table.needs_pairs:
             vertex.pair = table.pair(vertex.cell, si.sh_frame.n * vertex.side)
+            vertex.norm = dr.gather(mi.Float, table.norm, vertex.pair, vertex.guided)
             if mark_visited:
-                dr.scatter(table.visited, mi.UInt32(1), vertex.pair, vertex.guided)
+                dr.scatter(table.visited, mi.UInt32(1), vertex.pair, vertex.guided & (vertex.norm == 0))
         return vertex
 
     def _vertex(self, si, bsdf, active, mark_visited=True) -> "_Vertex":
@@ -223,9 +247,10 @@ class GridGuide(Guide):
         table = self.record_table
         vertex = self._locate(si, bsdf, active, mark_visited)
         if self.sampler.startswith("hemi"):
-            vertex.norm = dr.gather(mi.Float, table.norm, vertex.pair, vertex.guided)
             # A pair seen for the first time has no memo yet: its vertices keep BSDF sampling this pass.
             vertex.guided &= vertex.norm > 0
+        if table.needs_hemi_cdf:
+            vertex.row = dr.gather(mi.UInt32, table.row_of, vertex.pair, vertex.guided)
         if self.sampler.startswith("hemi_rej"):
             vertex.centre = table.normal_bins.normal(vertex.pair % table.normal_bins.count)
             vertex.bound = dr.gather(mi.Float, table.bound, vertex.pair, vertex.guided)
@@ -236,37 +261,38 @@ class GridGuide(Guide):
             vertex.bsdf_share = dr.maximum(share, self.min_bsdf_share)
         return vertex
 
-    def _eval_pdf(self, si, bsdf, bsdf_ctx, vertex, wo, chosen_bin=None) -> tuple[mi.Spectrum, mi.Float]:
-        """BSDF value ``f·cos`` and the density of the mixture ``α·p_bsdf + (1 − α)·p_guide`` at local ``wo``.
+    def _mixture_pdf(self, vertex, world: mi.Vector3f, bsdf_pdf: mi.Float, chosen_bin=None) -> mi.Float:
+        """Density of the mixture ``α·p_bsdf + (1 − α)·p_guide`` at world direction ``world``, given ``p_bsdf``.
 
-        ``chosen_bin`` (inversion samplers): the bin ``wo`` was drawn in, whose density is reported. Looking the
-        direction up again can give a neighbour when ``wo`` lies within rounding of a bin boundary, and a neighbour
+        ``chosen_bin``: the bin ``world`` was drawn in (or looked up in), whose density is reported. Looking the
+        direction up again can give a neighbour when it lies within rounding of a bin boundary, and a neighbour
         whose CDF step is below float32 resolution would report density 0 for a direction the guide drew."""
         table = self.record_table
-        value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, vertex.guided)
-        world = si.to_world(wo)
+        k = table.bins.index(world) if chosen_bin is None else chosen_bin
         if self.sampler.endswith("_inv"):
-            k = table.bins.index(world) if chosen_bin is None else chosen_bin
-            bsdf_share, guide_pdf = self.bsdf_fraction, self._bin_probability(vertex, k) / table.bins.solid_angle
+            share = self.bsdf_fraction
+            return share * bsdf_pdf + (1 - share) * self._bin_probability(vertex, k) / table.bins.solid_angle
+        if self.proposal == "bins":
+            miss_all = dr.gather(mi.Float, table.in_bin_miss, vertex.pair, vertex.guided)
+            accepted = table.in_bin_density(vertex.pair, k, dr.dot(world, vertex.centre), vertex.guided)
+            guide_density = self._bin_probability(vertex, k) * accepted
         else:
-            if self.proposal == "policy":
-                acceptance = vertex.norm * table.bins.count / (4 * dr.pi)
-            else:
-                acceptance = vertex.norm / (2 * dr.pi * vertex.bound)
+            acceptance = vertex.norm / (2 * dr.pi * vertex.bound)
             miss_all = dr.power(1 - dr.minimum(acceptance, 1), self.max_proposals)
-            bsdf_share = 1 - (1 - vertex.bsdf_share) * (1 - miss_all)
             cosine = dr.maximum(dr.dot(world, vertex.centre), 0)
-            guide_pdf = table.policy_at(vertex.cell, world, vertex.guided) * cosine / vertex.norm
-        return value, bsdf_share * bsdf_pdf + (1 - bsdf_share) * guide_pdf
+            target = dr.gather(mi.Float, table.policy, vertex.cell * table.bins.count + k, vertex.guided)
+            guide_density = (1 - miss_all) * target * cosine / vertex.norm
+        # The rejected share r falls back to the BSDF: α = 1 − (1 − u)·(1 − r).
+        share = 1 - (1 - vertex.bsdf_share) * (1 - miss_all)
+        return share * bsdf_pdf + (1 - vertex.bsdf_share) * guide_density
 
     def _bin_probability(self, vertex, k: mi.UInt32) -> mi.Float:
-        """Probability of bin ``k`` under the inversion sampler's CDF row (the cell's, or the pair's)."""
+        """Probability of bin ``k`` under the CDF row a bin is drawn from (the cell's, or the pair's)."""
         table = self.record_table
         if self.sampler == "sphere_inv":
             return dr.gather(mi.Float, table.policy, vertex.cell * table.bins.count + k, vertex.guided)
-        row = vertex.pair * table.bins.count
-        above = dr.gather(mi.Float, table.hemi_cdf, row + k, vertex.guided)
-        below = dr.gather(mi.Float, table.hemi_cdf, row + k - 1, vertex.guided & (k > 0))
+        above = dr.gather(mi.Float, table.hemi_cdf, vertex.row + k, vertex.guided)
+        below = dr.gather(mi.Float, table.hemi_cdf, vertex.row + k - 1, vertex.guided & (k > 0))
         return above - below
 
     def _sample_inversion(self, sampler, vertex, active) -> tuple[mi.Vector3f, mi.UInt32]:
@@ -275,23 +301,27 @@ class GridGuide(Guide):
         if self.sampler == "sphere_inv":
             cdf, row = table.cdf, vertex.cell * table.bins.count
         else:
-            cdf, row = table.hemi_cdf, vertex.pair * table.bins.count
+            cdf, row = table.hemi_cdf, vertex.row
         return _direction_from_cdf(table.bins, cdf, row, sampler, active)
 
-    def _sample_rejection(self, sampler, vertex, searching) -> tuple[mi.Vector3f, mi.Bool]:
-        """A world direction from the target ``P·cos⁺(ω, n_c)/N`` by rejection, and whether one was accepted
-        within ``max_proposals`` (the others fall back to the BSDF's direction)."""
+    def _sample_rejection(self, sampler, vertex, searching) -> tuple[mi.Vector3f, mi.UInt32 | None, mi.Bool]:
+        """A world direction from the target ``P·cos⁺(ω, n_c)/N``: (direction, the bin it was drawn in or None,
+        whether it was accepted; the lanes that were not fall back to the BSDF's direction)."""
         table = self.record_table
         centre = vertex.centre
-        if self.proposal == "policy":
+        if self.proposal == "bins":
+            k = _invert_cdf(table.hemi_cdf, vertex.row, table.bins.count, sampler.next_1d(searching), searching)
+            bound = dr.gather(mi.Float, table.in_bin_bound, table.in_bin_flat(vertex.pair, k), searching)
+
             def propose(sampler, active):
-                wo, _ = _direction_from_cdf(table.bins, table.cdf, vertex.cell * table.bins.count, sampler, active)
-                return wo
+                return table.bins.direction(k, sampler.next_2d(active))
 
             def accepts(sampler, candidate, active):
-                return sampler.next_1d(active) < dr.dot(candidate, centre)
+                return sampler.next_1d(active) * bound < dr.dot(candidate, centre)
+            cap = IN_BIN_PROPOSALS
         else:
             frame = mi.Frame3f(centre)
+            k = None
 
             def propose(sampler, active):
                 return frame.to_world(mi.warp.square_to_uniform_hemisphere(sampler.next_2d(active)))
@@ -299,28 +329,27 @@ class GridGuide(Guide):
             def accepts(sampler, candidate, active):   # ξ·M < P·cos(ω, n_c)
                 target = table.policy_at(vertex.cell, candidate, active) * dr.dot(candidate, centre)
                 return sampler.next_1d(active) * vertex.bound < target
+            cap = self.max_proposals
 
         self._count("rejection_samples", 1, searching)
-        wo, accepted, proposals = self._rejection_loop(sampler, mi.Bool(searching), propose, accepts)
+        wo, accepted, proposals = self._rejection_loop(sampler, mi.Bool(searching), propose, accepts, cap)
         self._count("proposals", proposals, searching)
         self._count("accepted", 1, accepted)
-        return wo, accepted
+        return wo, k, accepted
 
     @dr.syntax
-    def _rejection_loop(self, sampler, searching, propose, accepts) -> tuple[mi.Vector3f, mi.Bool, mi.UInt32]:
-        """Proposals until one ``accepts`` or ``max_proposals`` are spent: (world direction, accepted, proposals).
+    def _rejection_loop(self, sampler, searching, propose, accepts, cap: int) -> tuple[mi.Vector3f, mi.Bool, mi.UInt32]:
+        """Proposals until one ``accepts`` or ``cap`` are spent: (the last proposal, accepted, proposals).
 
         ``sampler`` is named in the loop body (not only in the closures) so that its state is a loop variable."""
         wo = mi.Vector3f(0, 0, 1)
         proposals = mi.UInt32(0)
         accepted = mi.Bool(False)
         while dr.hint(searching, label="Rejection sampling", max_iterations=-1):
-            candidate = propose(sampler, searching)
+            wo = propose(sampler, searching)
             proposals += 1
-            if accepts(sampler, candidate, searching):
-                accepted = mi.Bool(True)
-                wo = candidate
-            searching &= ~accepted & (proposals < self.max_proposals)
+            accepted = accepts(sampler, wo, searching)
+            searching &= ~accepted & (proposals < cap)
         return wo, accepted, proposals
 
     # ---------------------------------------------------------------- learning
@@ -331,34 +360,39 @@ class GridGuide(Guide):
         return SarsaState(dr.full(mi.UInt32, NO_RECORD, size))
 
     def record(self, state, si, emitted, bs, weight, continues, active):
-        table = self.record_table
-        here = dr.select(continues, table.index(si.p, si.to_world(bs.wo)), NO_RECORD)
+        # Only segments that leave a guidable surface are recorded: Q is read nowhere else.
+        leaves = continues & guidable(si.bsdf())
         if self.rule == "mc":
+            here = dr.select(leaves, self.record_table.index(si.p, si.to_world(bs.wo)), NO_RECORD)
             return self._mc_log.append(state, emitted, weight, continues, here, active)
-
-        target = dr.mean(emitted)
-        onward = dr.mean(weight) * dr.gather(mi.Float, table.q, here, continues)  # one-sample ∫ f·Q·cos
-        if self.rule == "expected_sarsa":
-            bsdf = si.bsdf()
-            pair = table.pair(table.cell(si.p), si.sh_frame.n * _arrival_side(si))
-            known = active & si.is_valid() & guidable(bsdf) & (dr.gather(mi.Float, table.norm, pair, active) > 0)
-            albedo = dr.mean(bsdf.eval_diffuse_reflectance(si, known))
-            expected = albedo / dr.pi * dr.gather(mi.Float, table.value, pair, known)
-            onward = dr.select(known, expected, onward)
-        else:
-            known = mi.Bool(False)
-        target += dr.select(continues | known, onward, 0)
-        self._accumulate(state.previous, target, active & (state.previous != NO_RECORD))
-        state.previous = dr.select(active, here, state.previous)
+        state.previous = self._record_td(state.previous, si, emitted, bs, weight, continues, leaves, active)
         return state
+
+    @dr.syntax
+    def _record_td(self, previous, si, emitted, bs, weight, continues, leaves, active) -> mi.UInt32:
+        """SARSA / Expected SARSA: the target of the segment that led here (``previous``), and the entry of the
+        segment that leaves (returned). A branch: packets with neither (unguided surfaces) skip it."""
+        table = self.record_table
+        pending = active & (previous != NO_RECORD)
+        if pending | leaves:
+            here = table.index(si.p, si.to_world(bs.wo))
+            target = dr.mean(emitted)
+            onward = dr.mean(weight) * dr.gather(mi.Float, table.q, here, pending & continues)  # one-sample ∫ f·Q·cos
+            known = mi.Bool(False)
+            if dr.hint(self.rule == "expected_sarsa", mode="scalar"):
+                bsdf = si.bsdf()
+                pair = table.pair(table.cell(si.p), si.sh_frame.n * _arrival_side(si))
+                known = pending & si.is_valid() & guidable(bsdf) & (dr.gather(mi.Float, table.norm, pair, pending) > 0)
+                albedo = dr.mean(bsdf.eval_diffuse_reflectance(si, known))
+                onward = dr.select(known, albedo / dr.pi * dr.gather(mi.Float, table.value, pair, known), onward)
+            target += dr.select(continues | known, onward, 0)
+            table.accumulate(previous, target, pending)
+            previous = dr.select(leaves, here, NO_RECORD)
+        return previous
 
     def finish_paths(self, state) -> None:
         if self.rule == "mc":
             # Monte Carlo targets: the radiance each segment brought back, walked as soon as the paths end.
             walk_backward(self._mc_log, state,
-                          lambda entry, target, L: self._accumulate(target, dr.mean(L), target != NO_RECORD))
-
-    def _accumulate(self, index: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:
-        table = self.record_table
-        dr.scatter_reduce(dr.ReduceOp.Add, table.acc_sum, mi.Float64(target), index, active)
-        dr.scatter_reduce(dr.ReduceOp.Add, table.acc_count, mi.Float64(1), index, active)
+                          lambda entry, target, L: self.record_table.accumulate(target, dr.mean(L),
+                                                                                target != NO_RECORD))

@@ -11,7 +11,9 @@ the learning rate 1/N) into Q, the policy ``P = (1 − ε)·(Q + 1e-6)/Σ(Q + 1e
 - ``norm``  N = ∫_H P·cos dω, the normalising term of the hemisphere samplers,
 - ``bound`` M ≥ max_H P·cos over every normal of the normal bin (a true bound, so rejection is exact),
 - ``value`` V = ∫_H Q·cos dω, Expected SARSA's expectation,
-- ``hemi_cdf`` the CDF over bins of P·∫_bin cos (``hemi_inv``).
+- ``hemi_cdf`` the CDF over bins of P·∫_bin cos (``hemi_inv``, and the ``bins`` proposal of the rejection samplers),
+  one row per visited pair only (``row_of`` maps a pair to its row): 469 rows on cornell-box at S = 8, against the
+  76 800 pairs of the grid (157 MB dense, and a binary search in it missed the caches).
 
 N and V use the cosine integrals at the normal bin's centre (exact there; the error elsewhere is measured in
 ``results/``), from a quadrature of at least 8×8 points per bin (more below D = 16, see ``quadrature_points``).
@@ -49,16 +51,20 @@ def quadrature_points(directional_resolution: int) -> int:
 #: A bin reachable from the normal bin but with zero cosine integral at its centre keeps this share of its area,
 #: so hemi_inv can still sample it for off-centre normals (no direction with f·cos > 0 has zero density).
 REACHABLE_FLOOR = 0.01
-
+#: Proposals of the in-bin rejection of the ``bins`` proposal (a direction of the drawn bin ∝ cos(ω, n_c)); when
+#: all are rejected the BSDF's direction is used, with the pair's probability ``in_bin_miss`` of that in the
+#: density. Interior bins accept ~90 % of proposals; bins across the horizon less, and they are rarely drawn.
+IN_BIN_PROPOSALS = 4
 
 
 
 def table_needs(rule: str, sampler: str, proposal: str) -> dict[str, bool]:
     """The tables a grid guide with this rule, sampler and proposal needs (the ``needs_*`` arguments of
-    :class:`RadianceRecord`): the sphere CDF for sphere_inv and for policy proposals, the memo tables for the
-    hemisphere samplers, the per-pair CDFs for hemi_inv, V for Expected SARSA."""
-    return {"needs_cdf": sampler == "sphere_inv" or (sampler.startswith("hemi_rej") and proposal == "policy"),
-            "needs_memo": sampler.startswith("hemi"), "needs_hemi_cdf": sampler == "hemi_inv",
+    :class:`RadianceRecord`): the sphere CDF for sphere_inv, the memo tables for the hemisphere samplers, the
+    per-pair CDFs for hemi_inv and for the rejection samplers' ``bins`` proposal, V for Expected SARSA."""
+    in_bin = sampler.startswith("hemi_rej") and proposal == "bins"
+    return {"needs_cdf": sampler == "sphere_inv", "needs_memo": sampler.startswith("hemi"),
+            "needs_hemi_cdf": sampler == "hemi_inv" or in_bin, "needs_in_bin": in_bin,
             "needs_value": rule == "expected_sarsa"}
 
 
@@ -102,14 +108,17 @@ class RadianceRecord:
       normal_resolution: R, odd, of the ``6·R²`` cube-map normal bins of the memo tables.
       needs_cdf: build the per-cell CDF over the sphere (``sphere_inv``).
       needs_memo: build N and M for visited (cell, normal bin) pairs (hemisphere samplers).
-      needs_hemi_cdf: build the per-pair CDFs (``hemi_inv``).
+      needs_hemi_cdf: build the per-pair CDFs (``hemi_inv``; with ``needs_in_bin``, the rejection samplers').
+      needs_in_bin: the per-pair CDFs weigh each bin by its exact ∫ cos⁺(ω, n_c) (the rejection target, no floor),
+        and the in-bin rejection's tables are built (``in_bin_bound``, ``in_bin_weights``, per pair
+        ``in_bin_miss``).
       needs_value: build V (Expected SARSA).
       min_exploration: floor of ε (0 gives the paper's schedule exactly; see MIN_EXPLORATION).
     """
 
     def __init__(self, spatial_resolution: int, directional_resolution: int, normal_resolution: int = 5,
                  needs_cdf: bool = False, needs_memo: bool = False, needs_hemi_cdf: bool = False,
-                 needs_value: bool = False, min_exploration: float = MIN_EXPLORATION):
+                 needs_in_bin: bool = False, needs_value: bool = False, min_exploration: float = MIN_EXPLORATION):
         self.grid = GridCells(spatial_resolution)
         self.S = spatial_resolution
         self.min_exploration = min_exploration
@@ -117,12 +126,15 @@ class RadianceRecord:
         self.normal_bins = NormalBins(normal_resolution)
         self.cells = self.grid.count
         self.needs_cdf, self.needs_hemi_cdf, self.needs_value = needs_cdf, needs_hemi_cdf, needs_value
-        self.needs_pairs = needs_memo or needs_hemi_cdf or needs_value
+        self.needs_in_bin = needs_in_bin
+        self.needs_pairs = needs_memo or needs_hemi_cdf or needs_in_bin or needs_value
         B, NB, C = self.bins.count, self.normal_bins.count, self.cells
 
         self.sanitised: dict[str, int] = {}
         self.acc_sum = dr.zeros(mi.Float64, C * B)
         self.acc_count = dr.zeros(mi.Float64, C * B)
+        self.pass_sum = dr.zeros(mi.Float, C * B)
+        self.pass_count = dr.zeros(mi.UInt32, C * B)
         self.q = dr.zeros(mi.Float, C * B)
         self.policy = dr.full(mi.Float, 1.0 / B, C * B)
         self.cdf = None
@@ -133,8 +145,11 @@ class RadianceRecord:
             self.norm = dr.zeros(mi.Float, C * NB)
             self.bound = dr.zeros(mi.Float, C * NB)
             self.value = dr.zeros(mi.Float, C * NB)
-            self.hemi_cdf = dr.zeros(mi.Float, C * NB * B) if needs_hemi_cdf else None
+            self.row_of = dr.zeros(mi.UInt32, C * NB)
+            self.hemi_cdf = dr.zeros(mi.Float, B) if needs_hemi_cdf else None   # a row, never read, until a visit
             self.cos_integral, self.max_cos = self._cosine_tables()
+            self.in_bin_bound, self.in_bin_weights = self._in_bin_tables() if needs_in_bin else (None, None)
+            self.in_bin_miss = dr.zeros(mi.Float, C * NB) if needs_in_bin else None
         dr.eval(self.policy, self.cdf)
 
     # ------------------------------------------------------------------ geometry
@@ -194,10 +209,75 @@ class RadianceRecord:
         dr.eval(integral, max_cos)
         return integral, max_cos
 
+    def _in_bin_tables(self) -> tuple[mi.Float, mi.Vector2f]:
+        """Per (normal bin, bin), flat ``nb·B + k``, for the in-bin rejection ∝ cos(ω, n_c) at the normal bin's
+        centre: the bound ``c_max ≥ cos(ω, n_c)`` over the bin, and (g, m): the accepted directions' density is
+        ``g·c/A`` with ``c = cos⁺(ω, n_c)/c_max`` and A the bin's solid angle, and m the probability that all
+        IN_BIN_PROPOSALS = K proposals are rejected.
+
+        With acceptance ``a = ∫_bin cos⁺/(A·c_max)``, the j-th proposal is the one accepted with probability
+        (1 − a)^(j−1)·c: g = (1 − (1 − a)^K)/a and m = (1 − a)^K (g·a + m = 1). Computed in float64 (a → 0 has the
+        limit g = K)."""
+        import numpy as np
+
+        B, NB = self.bins.count, self.normal_bins.count
+        k = dr.arange(mi.UInt32, NB * B) % B
+        normal = self.normal_bins.normal(dr.arange(mi.UInt32, NB * B) // B)
+        centres = self.bins.centres()
+        radius = dr.gather(mi.Float, _angular_radius(self.bins.direction, B, centres), k)
+        angle = dr.safe_acos(dr.dot(normal, dr.gather(mi.Vector3f, centres, k)))
+        bound = np.array(dr.cos(dr.maximum(angle - radius, 0)), dtype=np.float64)
+        integral = np.array(self.cos_integral, dtype=np.float64)
+        bound = np.where((bound > 0) & (integral > 0), np.minimum(bound, 1.0), 1.0)   # unreachable bins: never drawn
+        a = np.clip(integral / (self.bins.solid_angle * bound), 0.0, 1.0)
+        miss = (1.0 - a) ** IN_BIN_PROPOSALS
+        gain = np.where(a > 1e-12, (1.0 - miss) / np.maximum(a, 1e-300), float(IN_BIN_PROPOSALS))
+        return mi.Float(bound.astype(np.float32)), mi.Vector2f(gain.astype(np.float32), miss.astype(np.float32))
+
+    def in_bin_flat(self, pair: mi.UInt32, k: mi.UInt32) -> mi.UInt32:
+        """Index of the in-bin tables for bin ``k`` at the normal bin of ``pair``."""
+        return (pair % self.normal_bins.count) * self.bins.count + k
+
+    def in_bin_density(self, pair: mi.UInt32, k: mi.UInt32, cosine: mi.Float, active: mi.Bool) -> mi.Float:
+        """Density (solid angle) with which the in-bin rejection of bin ``k`` returns an accepted direction with
+        ``cos(ω, n_c) = cosine`` (its integral over the bin is the bin's acceptance, 1 − m)."""
+        flat = self.in_bin_flat(pair, k)
+        bound = dr.gather(mi.Float, self.in_bin_bound, flat, active)
+        gain = dr.gather(mi.Vector2f, self.in_bin_weights, flat, active).x
+        return gain * dr.minimum(dr.maximum(cosine, 0) / bound, 1) / self.bins.solid_angle
+
+    # ------------------------------------------------------------------ learning
+    def accumulate(self, index: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:
+        """Add ``target`` to entry ``index`` of this pass's sums (and one to its count), in the path loop.
+
+        The pass's sums are float32 and its counts UInt32, added without atomics where the CPU backend can give each
+        thread a copy (``ReduceMode.Expand``, for tables up to ``dr.expand_threshold()`` entries); :meth:`update`
+        folds them into the float64 totals. Float64 atomic adds are compare-and-swap loops on the CPU."""
+        mode = dr.ReduceMode.Expand if dr.width(self.pass_sum) <= dr.expand_threshold() else dr.ReduceMode.Auto
+        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_sum, target, index, active, mode=mode)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_count, mi.UInt32(1), index, active, mode=mode)
+
+    def totals(self):
+        """The sums and visit counts of every entry as float64 NumPy arrays, this pass's targets included."""
+        import numpy as np
+
+        return (np.array(self.acc_sum) + np.array(self.pass_sum, dtype=np.float64),
+                np.array(self.acc_count) + np.array(self.pass_count, dtype=np.float64))
+
+    def _fold_pass(self) -> None:
+        """Add the pass's sums and counts to the totals, and clear them for the next pass."""
+        self.acc_sum = self.acc_sum + mi.Float64(self.pass_sum)
+        self.acc_count = self.acc_count + mi.Float64(self.pass_count)
+        self.pass_sum = dr.zeros(mi.Float, dr.width(self.pass_sum))
+        self.pass_count = dr.zeros(mi.UInt32, dr.width(self.pass_count))
+        dr.eval(self.acc_sum, self.acc_count)
+
     # -------------------------------------------------------------------- update
     def update(self, spp_done: int) -> int:
-        """Rebuild Q, the policy and what the samplers need; returns the number of memoised pairs."""
+        """Fold the pass's targets in, rebuild Q, the policy and what the samplers need; returns the number of
+        memoised pairs."""
         B = self.bins.count
+        self._fold_pass()
         self._sanitise()
         visits = self.acc_count
         mean = self.acc_sum / dr.maximum(visits, 1)
@@ -246,27 +326,36 @@ class RadianceRecord:
             q = dr.gather(mi.Float, self.q, cell * B + k)
             dr.scatter(self.value, dr.block_reduce(dr.ReduceOp.Add, q * cos_integral, B), pairs)
         if self.needs_hemi_cdf:
-            reachable = dr.select(max_cos > 0, REACHABLE_FLOOR * self.bins.solid_angle, 0)
-            weight = p * dr.maximum(cos_integral, reachable)
-            dr.scatter(self.hemi_cdf, _normalised_cdf(weight, B), pair * B + k)
-        dr.eval(self.norm, self.bound, self.value, self.hemi_cdf)
+            if self.needs_in_bin:
+                weight = p * cos_integral
+                miss = dr.gather(mi.Vector2f, self.in_bin_weights, nb * B + k).y
+                total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, B), flat // B)
+                dr.scatter(self.in_bin_miss, dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, B), pairs)
+            else:
+                weight = p * dr.maximum(cos_integral, dr.select(max_cos > 0, REACHABLE_FLOOR * self.bins.solid_angle, 0))
+            self.hemi_cdf = _normalised_cdf(weight, B)
+            dr.scatter(self.row_of, dr.arange(mi.UInt32, count) * B, pairs)
+        dr.eval(self.norm, self.bound, self.value, self.hemi_cdf, self.row_of, self.in_bin_miss)
         return count
 
     @staticmethod
     def planned_bytes(spatial_resolution: int, directional_resolution: int, normal_resolution: int = 5,
                       needs_cdf: bool = False, needs_memo: bool = False, needs_hemi_cdf: bool = False,
-                      needs_value: bool = False) -> int:
-        """The bytes :meth:`memory_bytes` reports for a record built with these arguments, computed without
-        allocating anything (so that an oversized table can be refused before it is built)."""
+                      needs_in_bin: bool = False, needs_value: bool = False) -> int:
+        """The most bytes :meth:`memory_bytes` can report for a record built with these arguments (every pair
+        visited), computed without allocating anything (so that an oversized table can be refused before it is
+        built)."""
         C, B, NB = spatial_resolution ** 3, 2 * directional_resolution ** 2, 6 * normal_resolution ** 2
-        total = C * B * (8 + 8 + 4 + 4 + (4 if needs_cdf else 0))      # sums, counts, Q, policy, CDF
-        if needs_memo or needs_hemi_cdf or needs_value:
-            total += 4 * (4 * C * NB + (C * NB * B if needs_hemi_cdf else 0) + 2 * NB * B)
+        total = C * B * (8 + 8 + 4 + 4 + 4 + 4 + (4 if needs_cdf else 0))   # totals, pass sums, Q, policy, CDF
+        if needs_memo or needs_hemi_cdf or needs_in_bin or needs_value:
+            total += 4 * ((6 if needs_in_bin else 5) * C * NB + (C * NB * B if needs_hemi_cdf else 0)
+                          + (5 if needs_in_bin else 2) * NB * B)
         return total
 
     def memory_bytes(self) -> int:
-        arrays = [self.acc_sum, self.acc_count, self.q, self.policy, self.cdf]
+        arrays = [self.acc_sum, self.acc_count, self.pass_sum, self.pass_count, self.q, self.policy, self.cdf]
         if self.needs_pairs:
-            arrays += [self.visited, self.norm, self.bound, self.value, self.hemi_cdf, self.cos_integral,
-                       self.max_cos]
-        return sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays if a is not None)
+            arrays += [self.visited, self.row_of, self.norm, self.bound, self.value, self.hemi_cdf,
+                       self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_weights, self.in_bin_miss]
+        return sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) * (2 if isinstance(a, mi.Vector2f) else 1)
+                   for a in arrays if a is not None)

@@ -11,8 +11,9 @@ from dataclasses import dataclass, replace
 
 RULES = ("mc", "sarsa", "expected_sarsa")
 SAMPLERS = ("sphere_inv", "hemi_inv", "hemi_rej", "hemi_rej_plus")
-#: How the rejection samplers propose directions (the paper's ``uniform``, or our faster ``policy``).
-PROPOSALS = ("policy", "uniform")
+#: How the rejection samplers draw their target: ``bins`` (exactly: a bin from the pair's CDF of P·∫cos, then a
+#: direction ∝ cos inside it) or the paper's loop of ``uniform`` proposals (see :mod:`guiding.guides.grid`).
+PROPOSALS = ("bins", "uniform")
 #: Benchmark instrument (``profile_stage`` of :class:`GridParameters`): the parts of the grid guide's bounce, switched
 #: on one by one. ``classify`` looks the vertex up and computes the guided mask, then uses the BSDF's sample;
 #: ``sample`` also draws the guided directions (weights are the BSDF's, the mixture pdf is not evaluated); ``pdf``
@@ -34,8 +35,8 @@ MIN_EXPLORATION = 0.1
 
 
 def default_proposal(sampler: str) -> str:
-    """The proposal a rejection sampler uses unless told otherwise: ``policy`` for hemi_rej_plus, else ``uniform``."""
-    return "policy" if sampler == "hemi_rej_plus" else "uniform"
+    """The proposal a rejection sampler uses unless told otherwise: ``bins`` for hemi_rej_plus, else ``uniform``."""
+    return "bins" if sampler == "hemi_rej_plus" else "uniform"
 
 
 def _check(condition: bool, message: str) -> None:
@@ -63,9 +64,9 @@ class GridParameters:
       sampler: ``sphere_inv`` | ``hemi_inv`` | ``hemi_rej`` | ``hemi_rej_plus``.
       normal_resolution: odd cube-map resolution of the memo tables' normal bins (default 5: 150 bins).
       bsdf_fraction: BSDF share of the inversion samplers' mixture (default 0.5; 0 is the paper's pure sampler).
-      proposal: ``policy`` or ``uniform`` (the paper's loop): how rejection samplers propose. Default (None):
-        ``policy`` for ``hemi_rej_plus``, ``uniform`` for ``hemi_rej``.
-      max_proposals: cap of the rejection loop (default 64).
+      proposal: ``bins`` or ``uniform`` (the paper's loop): how rejection samplers draw their target. Default
+        (None): ``bins`` for ``hemi_rej_plus``, ``uniform`` for ``hemi_rej``.
+      max_proposals: cap of the ``uniform`` rejection loop (default 64).
       min_bsdf_share: least BSDF share of the rejection samplers (default :data:`MIN_BSDF_SHARE`).
       min_exploration: floor of the exploration share ε (default :data:`MIN_EXPLORATION`; 0 is the paper's
         schedule exactly).

@@ -84,7 +84,8 @@ def record_violations(record) -> list[str]:
         problems.append(f"cell policies sum to {sums[np.abs(sums - 1) > B * EPS32][:3]}")
     rows = [("cdf", tables.get("cdf"))]
     if record.needs_pairs and record.hemi_cdf is not None:
-        rows.append(("hemi_cdf", tables["hemi_cdf"].reshape(-1, B)[np.array(record.visited) != 0]))
+        visited = np.count_nonzero(np.array(record.visited))       # one row per visited pair (a placeholder if none)
+        rows.append(("hemi_cdf", tables["hemi_cdf"].reshape(-1, B)[:visited]))
     for name, cdf in rows:
         if cdf is None:
             continue

@@ -15,8 +15,8 @@ from arrays import few
 from hostile import HOSTILE_ENTRIES, hostile_grid, record_arrays, record_violations
 from sdtree_parts import TREE_METHODS, forest_violations, hostile_tree
 
-#: The grid guides whose tables cover every array an update builds: the sphere CDF (sphere_inv, and the policy
-#: proposal of hemi_rej_plus), the per-pair N, M and hemi_inv CDF, and Expected SARSA's V.
+#: The grid guides whose tables cover every array an update builds: the sphere CDF (sphere_inv), the per-pair N, M
+#: and CDFs (hemi_inv's, and the bins proposal's with its fallback share), and Expected SARSA's V.
 TABLE_METHODS = ("expected_sarsa-sphere_inv", "expected_sarsa-hemi_inv", "expected_sarsa-hemi_rej_plus",
                  "sarsa-hemi_rej")
 

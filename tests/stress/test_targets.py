@@ -25,7 +25,7 @@ def test_grid_learning_targets(rule, figures):
     benign, hostile = SyntheticPaths.benign(), SyntheticPaths.hostile()
     benign.run(guide)
     hostile.run(guide)
-    sums, counts = np.array(record.acc_sum), np.array(record.acc_count)
+    sums, counts = record.totals()
     B = record.bins.count
     cell = {name: int(np.array(record.cell(vectors(np.array([[*paths.position, 0.0]]))))[0])
             for name, paths in (("benign", benign), ("hostile", hostile))}
