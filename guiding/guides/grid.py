@@ -23,10 +23,10 @@ The rejection target uses the normal bin's centre ``n_c``: the memoised ``N = �
 at every true normal, so the samplers are exact by construction (with N taken at n_c but the cosine at the true
 normal, each bounce was off by N(n_c)/N(n): ``ours`` was +1.25 ± 0.29 % off ``path`` on the tilted Cornell box).
 Target directions below the true surface have f = 0 and weight 0. The target is drawn with one of the proposals:
-  ``bins``     without a loop over the sphere: a bin k from the pair's memoised CDF of ``P_k·∫_k cos⁺``, then a
-               direction of the bin ∝ ``cos(ω, n_c)`` by rejection against the bin's bound (most bins accept
-               ~90 % of proposals, bins across the horizon less); r, the chance that all ``IN_BIN_PROPOSALS``
-               are rejected, is memoised per pair (``in_bin_miss``), a few parts in 10⁴ on cornell-box;
+  ``bins``     without a loop: a bin k from the pair's memoised CDF of ``P_k·∫_k cos⁺``, then a direction of the bin
+               ∝ ``cos(ω, n_c)``, the first of ``IN_BIN_PROPOSALS`` uniform proposals in the bin accepted against
+               the bin's bound (most bins accept ~90 % of proposals, bins across the horizon less); r, the chance
+               that all are rejected, is memoised per pair (``in_bin_miss``);
   ``uniform``  the paper's loop: uniform directions on the hemisphere of n_c, accepted if ``ξ·M < P·cos(ω, n_c)``;
                acceptance ``a = N/(2π·M)``, a few percent once P is peaked; ``r = (1 − a)^max_proposals``.
 Pass 0 samples the BSDF only (the tables are empty); it marks the (cell, normal bin) pairs it visits, so the
@@ -79,6 +79,22 @@ def _direction_from_cdf(bins, cdf: mi.Float, row: mi.UInt32, sampler: mi.Sampler
     """A bin drawn from one row of per-bin CDFs, then a uniform direction inside it: (world direction, bin)."""
     k = _invert_cdf(cdf, row, bins.count, sampler.next_1d(active), active)
     return bins.direction(k, sampler.next_2d(active)), k
+
+
+def _first_accepted(sampler, searching, propose, accepts, count: int) -> tuple[mi.Vector3f, mi.Bool, mi.UInt32]:
+    """``count`` proposals side by side, without a loop: (the first accepted, whether one was, the proposals made
+    until then). Where most lanes accept the first proposal, a symbolic loop cost more than the proposals it saved
+    (it keeps the sampler and the candidates as loop state)."""
+    wo = mi.Vector3f(0, 0, 1)
+    accepted = mi.Bool(False)
+    proposals = mi.UInt32(0)
+    for _ in range(count):
+        candidate = propose(sampler, searching)
+        proposals += dr.select(searching & ~accepted, 1, 0)
+        take = searching & ~accepted & accepts(sampler, candidate, searching)
+        wo = dr.select(take, candidate, wo)
+        accepted |= take
+    return wo, accepted, proposals
 
 
 def _arrival_side(si: mi.SurfaceInteraction3f) -> mi.Float:
@@ -274,7 +290,8 @@ class GridGuide(Guide):
             return share * bsdf_pdf + (1 - share) * self._bin_probability(vertex, k) / table.bins.solid_angle
         if self.proposal == "bins":
             miss_all = dr.gather(mi.Float, table.in_bin_miss, vertex.pair, vertex.guided)
-            accepted = table.in_bin_density(vertex.pair, k, dr.dot(world, vertex.centre), vertex.guided)
+            scale = dr.gather(mi.Float, table.in_bin_scale, table.in_bin_flat(vertex.pair, k), vertex.guided)
+            accepted = scale * dr.maximum(dr.dot(world, vertex.centre), 0)
             guide_density = self._bin_probability(vertex, k) * accepted
         else:
             acceptance = vertex.norm / (2 * dr.pi * vertex.bound)
@@ -318,7 +335,6 @@ class GridGuide(Guide):
 
             def accepts(sampler, candidate, active):
                 return sampler.next_1d(active) * bound < dr.dot(candidate, centre)
-            cap = IN_BIN_PROPOSALS
         else:
             frame = mi.Frame3f(centre)
             k = None
@@ -329,10 +345,13 @@ class GridGuide(Guide):
             def accepts(sampler, candidate, active):   # ξ·M < P·cos(ω, n_c)
                 target = table.policy_at(vertex.cell, candidate, active) * dr.dot(candidate, centre)
                 return sampler.next_1d(active) * vertex.bound < target
-            cap = self.max_proposals
 
         self._count("rejection_samples", 1, searching)
-        wo, accepted, proposals = self._rejection_loop(sampler, mi.Bool(searching), propose, accepts, cap)
+        if self.proposal == "bins":
+            wo, accepted, proposals = _first_accepted(sampler, searching, propose, accepts, IN_BIN_PROPOSALS)
+        else:
+            wo, accepted, proposals = self._rejection_loop(sampler, mi.Bool(searching), propose, accepts,
+                                                           self.max_proposals)
         self._count("proposals", proposals, searching)
         self._count("accepted", 1, accepted)
         return wo, k, accepted

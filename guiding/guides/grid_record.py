@@ -51,10 +51,10 @@ def quadrature_points(directional_resolution: int) -> int:
 #: A bin reachable from the normal bin but with zero cosine integral at its centre keeps this share of its area,
 #: so hemi_inv can still sample it for off-centre normals (no direction with f·cos > 0 has zero density).
 REACHABLE_FLOOR = 0.01
-#: Proposals of the in-bin rejection of the ``bins`` proposal (a direction of the drawn bin ∝ cos(ω, n_c)); when
-#: all are rejected the BSDF's direction is used, with the pair's probability ``in_bin_miss`` of that in the
-#: density. Interior bins accept ~90 % of proposals; bins across the horizon less, and they are rarely drawn.
-IN_BIN_PROPOSALS = 4
+#: Proposals of the in-bin rejection of the ``bins`` proposal (a direction of the drawn bin ∝ cos(ω, n_c)), all
+#: drawn; when all are rejected the BSDF's direction is used, with the pair's probability ``in_bin_miss`` of that in
+#: the density. Interior bins accept ~90 % of proposals; bins across the horizon less, and they are rarely drawn.
+IN_BIN_PROPOSALS = 2
 
 
 
@@ -110,8 +110,8 @@ class RadianceRecord:
       needs_memo: build N and M for visited (cell, normal bin) pairs (hemisphere samplers).
       needs_hemi_cdf: build the per-pair CDFs (``hemi_inv``; with ``needs_in_bin``, the rejection samplers').
       needs_in_bin: the per-pair CDFs weigh each bin by its exact ∫ cos⁺(ω, n_c) (the rejection target, no floor),
-        and the in-bin rejection's tables are built (``in_bin_bound``, ``in_bin_weights``, per pair
-        ``in_bin_miss``).
+        and the in-bin rejection's tables are built (``in_bin_bound``, ``in_bin_scale``, ``in_bin_misses``, per
+        pair ``in_bin_miss``).
       needs_value: build V (Expected SARSA).
       min_exploration: floor of ε (0 gives the paper's schedule exactly; see MIN_EXPLORATION).
     """
@@ -133,8 +133,7 @@ class RadianceRecord:
         self.sanitised: dict[str, int] = {}
         self.acc_sum = dr.zeros(mi.Float64, C * B)
         self.acc_count = dr.zeros(mi.Float64, C * B)
-        self.pass_sum = dr.zeros(mi.Float, C * B)
-        self.pass_count = dr.zeros(mi.UInt32, C * B)
+        self.pass_targets = dr.zeros(mi.Float, 2 * C * B)
         self.q = dr.zeros(mi.Float, C * B)
         self.policy = dr.full(mi.Float, 1.0 / B, C * B)
         self.cdf = None
@@ -148,7 +147,8 @@ class RadianceRecord:
             self.row_of = dr.zeros(mi.UInt32, C * NB)
             self.hemi_cdf = dr.zeros(mi.Float, B) if needs_hemi_cdf else None   # a row, never read, until a visit
             self.cos_integral, self.max_cos = self._cosine_tables()
-            self.in_bin_bound, self.in_bin_weights = self._in_bin_tables() if needs_in_bin else (None, None)
+            self.in_bin_bound, self.in_bin_scale, self.in_bin_misses = (self._in_bin_tables() if needs_in_bin
+                                                                        else (None, None, None))
             self.in_bin_miss = dr.zeros(mi.Float, C * NB) if needs_in_bin else None
         dr.eval(self.policy, self.cdf)
 
@@ -209,15 +209,14 @@ class RadianceRecord:
         dr.eval(integral, max_cos)
         return integral, max_cos
 
-    def _in_bin_tables(self) -> tuple[mi.Float, mi.Vector2f]:
+    def _in_bin_tables(self) -> tuple[mi.Float, mi.Float, mi.Float]:
         """Per (normal bin, bin), flat ``nb·B + k``, for the in-bin rejection ∝ cos(ω, n_c) at the normal bin's
-        centre: the bound ``c_max ≥ cos(ω, n_c)`` over the bin, and (g, m): the accepted directions' density is
-        ``g·c/A`` with ``c = cos⁺(ω, n_c)/c_max`` and A the bin's solid angle, and m the probability that all
-        IN_BIN_PROPOSALS = K proposals are rejected.
+        centre: the bound ``c_max ≥ cos(ω, n_c)`` over the bin; the scale s of the accepted directions' density
+        ``s·cos⁺(ω, n_c)``; the probability m that all IN_BIN_PROPOSALS = K proposals are rejected.
 
-        With acceptance ``a = ∫_bin cos⁺/(A·c_max)``, the j-th proposal is the one accepted with probability
-        (1 − a)^(j−1)·c: g = (1 − (1 − a)^K)/a and m = (1 − a)^K (g·a + m = 1). Computed in float64 (a → 0 has the
-        limit g = K)."""
+        With acceptance ``a = ∫_bin cos⁺/(A·c_max)`` (A the bin's solid angle), the j-th proposal is the one accepted
+        with probability (1 − a)^(j−1)·cos⁺/c_max: s = (1 − (1 − a)^K)/(a·A·c_max) and m = (1 − a)^K, so that
+        ``s·∫_bin cos⁺ + m = 1``. Computed in float64 (a → 0 has the limit s = K/(A·c_max))."""
         import numpy as np
 
         B, NB = self.bins.count, self.normal_bins.count
@@ -229,48 +228,43 @@ class RadianceRecord:
         bound = np.array(dr.cos(dr.maximum(angle - radius, 0)), dtype=np.float64)
         integral = np.array(self.cos_integral, dtype=np.float64)
         bound = np.where((bound > 0) & (integral > 0), np.minimum(bound, 1.0), 1.0)   # unreachable bins: never drawn
-        a = np.clip(integral / (self.bins.solid_angle * bound), 0.0, 1.0)
+        area = self.bins.solid_angle
+        a = np.clip(integral / (area * bound), 0.0, 1.0)
         miss = (1.0 - a) ** IN_BIN_PROPOSALS
         gain = np.where(a > 1e-12, (1.0 - miss) / np.maximum(a, 1e-300), float(IN_BIN_PROPOSALS))
-        return mi.Float(bound.astype(np.float32)), mi.Vector2f(gain.astype(np.float32), miss.astype(np.float32))
+        return tuple(mi.Float(t.astype(np.float32)) for t in (bound, gain / (area * bound), miss))
 
     def in_bin_flat(self, pair: mi.UInt32, k: mi.UInt32) -> mi.UInt32:
         """Index of the in-bin tables for bin ``k`` at the normal bin of ``pair``."""
         return (pair % self.normal_bins.count) * self.bins.count + k
 
-    def in_bin_density(self, pair: mi.UInt32, k: mi.UInt32, cosine: mi.Float, active: mi.Bool) -> mi.Float:
-        """Density (solid angle) with which the in-bin rejection of bin ``k`` returns an accepted direction with
-        ``cos(ω, n_c) = cosine`` (its integral over the bin is the bin's acceptance, 1 − m)."""
-        flat = self.in_bin_flat(pair, k)
-        bound = dr.gather(mi.Float, self.in_bin_bound, flat, active)
-        gain = dr.gather(mi.Vector2f, self.in_bin_weights, flat, active).x
-        return gain * dr.minimum(dr.maximum(cosine, 0) / bound, 1) / self.bins.solid_angle
-
     # ------------------------------------------------------------------ learning
     def accumulate(self, index: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:
         """Add ``target`` to entry ``index`` of this pass's sums (and one to its count), in the path loop.
 
-        The pass's sums are float32 and its counts UInt32, added without atomics where the CPU backend can give each
-        thread a copy (``ReduceMode.Expand``, for tables up to ``dr.expand_threshold()`` entries); :meth:`update`
-        folds them into the float64 totals. Float64 atomic adds are compare-and-swap loops on the CPU."""
-        mode = dr.ReduceMode.Expand if dr.width(self.pass_sum) <= dr.expand_threshold() else dr.ReduceMode.Auto
-        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_sum, target, index, active, mode=mode)
-        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_count, mi.UInt32(1), index, active, mode=mode)
+        The pass's sum and count of an entry are float32 neighbours in ``pass_targets`` (one cache line for both),
+        added without atomics where the CPU backend can give each thread a copy (``ReduceMode.Expand``, for tables
+        up to ``dr.expand_threshold()`` entries); :meth:`update` folds them into the float64 totals. Float64 atomic
+        adds are compare-and-swap loops on the CPU. A float32 count is exact to 2²⁴ visits of one entry in one
+        pass."""
+        mode = dr.ReduceMode.Expand if dr.width(self.pass_targets) <= dr.expand_threshold() else dr.ReduceMode.Auto
+        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_targets, target, 2 * index, active, mode=mode)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_targets, mi.Float(1), 2 * index + 1, active, mode=mode)
 
     def totals(self):
         """The sums and visit counts of every entry as float64 NumPy arrays, this pass's targets included."""
         import numpy as np
 
-        return (np.array(self.acc_sum) + np.array(self.pass_sum, dtype=np.float64),
-                np.array(self.acc_count) + np.array(self.pass_count, dtype=np.float64))
+        pending = np.array(self.pass_targets, dtype=np.float64).reshape(-1, 2)
+        return np.array(self.acc_sum) + pending[:, 0], np.array(self.acc_count) + pending[:, 1]
 
     def _fold_pass(self) -> None:
         """Add the pass's sums and counts to the totals, and clear them for the next pass."""
-        self.acc_sum = self.acc_sum + mi.Float64(self.pass_sum)
-        self.acc_count = self.acc_count + mi.Float64(self.pass_count)
-        self.pass_sum = dr.zeros(mi.Float, dr.width(self.pass_sum))
-        self.pass_count = dr.zeros(mi.UInt32, dr.width(self.pass_count))
+        entry = dr.arange(mi.UInt32, dr.width(self.acc_sum))
+        self.acc_sum = self.acc_sum + mi.Float64(dr.gather(mi.Float, self.pass_targets, 2 * entry))
+        self.acc_count = self.acc_count + mi.Float64(dr.gather(mi.Float, self.pass_targets, 2 * entry + 1))
         dr.eval(self.acc_sum, self.acc_count)
+        self.pass_targets = dr.zeros(mi.Float, dr.width(self.pass_targets))
 
     # -------------------------------------------------------------------- update
     def update(self, spp_done: int) -> int:
@@ -328,7 +322,7 @@ class RadianceRecord:
         if self.needs_hemi_cdf:
             if self.needs_in_bin:
                 weight = p * cos_integral
-                miss = dr.gather(mi.Vector2f, self.in_bin_weights, nb * B + k).y
+                miss = dr.gather(mi.Float, self.in_bin_misses, nb * B + k)
                 total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, B), flat // B)
                 dr.scatter(self.in_bin_miss, dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, B), pairs)
             else:
@@ -349,13 +343,13 @@ class RadianceRecord:
         total = C * B * (8 + 8 + 4 + 4 + 4 + 4 + (4 if needs_cdf else 0))   # totals, pass sums, Q, policy, CDF
         if needs_memo or needs_hemi_cdf or needs_in_bin or needs_value:
             total += 4 * ((6 if needs_in_bin else 5) * C * NB + (C * NB * B if needs_hemi_cdf else 0)
-                          + (5 if needs_in_bin else 2) * NB * B)
+                          + (5 if needs_in_bin else 2) * NB * B)   # cosine tables, in-bin tables
         return total
 
     def memory_bytes(self) -> int:
-        arrays = [self.acc_sum, self.acc_count, self.pass_sum, self.pass_count, self.q, self.policy, self.cdf]
+        arrays = [self.acc_sum, self.acc_count, self.pass_targets, self.q, self.policy, self.cdf]
         if self.needs_pairs:
             arrays += [self.visited, self.row_of, self.norm, self.bound, self.value, self.hemi_cdf,
-                       self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_weights, self.in_bin_miss]
-        return sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) * (2 if isinstance(a, mi.Vector2f) else 1)
-                   for a in arrays if a is not None)
+                       self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_scale, self.in_bin_misses,
+                       self.in_bin_miss]
+        return sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays if a is not None)
