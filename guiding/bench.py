@@ -10,7 +10,9 @@ parts of its bounce switched on one by one, and the ``trace-only`` kernel gives 
 Grid guides: ``[classify]`` (vertex lookup and guided mask, BSDF sampling), ``[+sample]`` (guided directions, BSDF
 weights), ``[+pdf]`` (the exact mixture density: the full sampler, nothing recorded), ``[+record]`` (the guide as
 rendered, statistics off: the method's own row) and ``[+statistics]`` (its per-pass counters on; the benchmark's
-``guided_per_ray`` comes from this variant). Tree guides: ``[no record]`` (recording stops after the warm-up
+``guided_per_ray`` comes from this variant); ``[bsdf paths]`` (the whole bounce computed and recorded, the path
+continued along the BSDF's sample: the guide's work at ``brdf``'s paths; its increment is over the method itself,
+minus what the guided paths themselves cost). Tree guides: ``[no record]`` (recording stops after the warm-up
 passes) and ``[+record]``. The partial stages are a benchmark instrument (``GridParameters.profile_stage``): their
 images are not meant to be correct, and they learn their tables only in the warm-up passes.
 """
@@ -80,7 +82,11 @@ GRID_STAGES = [("classify", "[classify]", {"profile_stage": "classify"}),
                ("+sample", "[+sample]", {"profile_stage": "sample"}),
                ("+pdf", "[+pdf]", {"profile_stage": "pdf"}),
                ("+record", "", None),
-               ("+statistics", "[+statistics]", {"statistics": True})]
+               ("+statistics", "[+statistics]", {"statistics": True}),
+               ("bsdf paths", "[bsdf paths]", {"profile_stage": "bsdf_paths"})]
+#: Stages that are not a step of the sequence: their increment is over the method itself (for ``bsdf paths``, minus
+#: what the guided paths themselves cost).
+OUTSIDE_SEQUENCE = {"bsdf paths"}
 #: Tree guides' breakdown: recording off after the warm-up passes, then the guide itself.
 TREE_STAGES = [("no record", "[no record]", "stop"), ("+record", "", None)]
 
@@ -187,11 +193,13 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
             previous = kernel_per_spp["brdf"]
             for stage, variant, _ in stage_list:
                 cost = kernel_per_spp[variant]
+                before = kernel_per_spp[method] if stage in OUTSIDE_SEQUENCE else previous
                 breakdown_rows.append({"scene": name, "method": method, "stage": stage, "integrator": variant,
                                        "kernel_ms_per_spp": 1e3 * cost, "ratio_to_brdf": cost / kernel_per_spp["brdf"],
-                                       "increment_ms_per_spp": 1e3 * (cost - previous),
-                                       "increment_ratio": (cost - previous) / kernel_per_spp["brdf"]})
-                previous = cost
+                                       "increment_ms_per_spp": 1e3 * (cost - before),
+                                       "increment_ratio": (cost - before) / kernel_per_spp["brdf"]})
+                if stage not in OUTSIDE_SEQUENCE:
+                    previous = cost
         for method, records in timed.items():
             if method not in stages and method not in ("path", TRACE_ONLY):
                 continue      # a breakdown variant: in the breakdown table only

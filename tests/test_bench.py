@@ -2,7 +2,7 @@
 
 import pytest
 
-from guiding.bench import GRID_STAGES, TRACE_ONLY, TREE_STAGES, benchmark, target_table
+from guiding.bench import GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, benchmark, target_table
 
 
 def test_breakdown_table_shape():
@@ -15,9 +15,14 @@ def test_breakdown_table_shape():
     assert list(breakdown["method"]) == ["ours"] * len(GRID_STAGES) + ["sdtree"] * len(TREE_STAGES)
     full = breakdown.set_index("integrator").loc["ours"]
     assert full["ratio_to_brdf"] == frame.set_index("method").loc["ours", "ratio_to_brdf"]
-    # The increments add up to each method's last stage (the first is counted from brdf).
+    # The increments of the sequence add up to each method's last stage (the first is counted from brdf); a stage
+    # outside it is counted from the method itself.
     for method, rows in breakdown.groupby("method"):
-        assert abs(1 + rows["increment_ratio"].sum() - rows["ratio_to_brdf"].iloc[-1]) < 1e-9
+        sequence = rows[~rows["stage"].isin(OUTSIDE_SEQUENCE)]
+        assert abs(1 + sequence["increment_ratio"].sum() - sequence["ratio_to_brdf"].iloc[-1]) < 1e-9
+        for _, row in rows[rows["stage"].isin(OUTSIDE_SEQUENCE)].iterrows():
+            own = rows.set_index("integrator").loc[method, "ratio_to_brdf"]
+            assert abs(own + row["increment_ratio"] - row["ratio_to_brdf"]) < 1e-9
     # The statistics variant supplies the guided share (zero: glossy-box has no guidable surface).
     assert frame.set_index("method").loc["ours", "guided_per_ray"] == 0
     targets = target_table(frame, "cpu")

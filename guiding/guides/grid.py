@@ -42,7 +42,8 @@ import mitsuba as mi
 
 from .base import Guide, UpdateResult
 from .grid_record import IN_BIN_PROPOSALS, RadianceRecord, table_needs
-from .parameters import PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters, with_overrides
+from .parameters import (PROFILE_BSDF_PATHS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
+                         with_overrides)
 from .vertex_log import NO_RECORD, VertexLog, walk_backward
 
 
@@ -128,7 +129,8 @@ class GridGuide(Guide):
         self.min_bsdf_share = p.min_bsdf_share
         self.statistics = p.statistics
         #: Benchmark instrument: how far the bounce goes (index into PROFILE_STAGES; len = the whole guide).
-        self._stage = PROFILE_STAGES.index(p.profile_stage) if p.profile_stage else len(PROFILE_STAGES)
+        self._stage = PROFILE_STAGES.index(p.profile_stage) if p.profile_stage in PROFILE_STAGES else len(PROFILE_STAGES)
+        self._bsdf_paths = p.profile_stage == PROFILE_BSDF_PATHS
         self._updates = 0
         self.record_table = RadianceRecord(
             p.spatial_resolution, p.directional_resolution, p.normal_resolution,
@@ -232,6 +234,8 @@ class GridGuide(Guide):
         weight = dr.select(pdf > 0, value / pdf, 0)
         self._count("guided", 1, guided)
         self._count("invalid", 1, guided & dr.all(weight == 0))
+        if self._bsdf_paths:      # everything above is kept alive by an opaque zero, the path follows the BSDF
+            return bs, bsdf_weight + dr.opaque(mi.Float, 0) * (weight + mi.Float(guide_wo.x))
         bs.wo = dr.select(use_guide, guide_wo, bs.wo)
         bs.pdf = pdf
         bs.sampled_type = dr.select(use_guide, mi.UInt32(mi.BSDFFlags.DiffuseReflection), bs.sampled_type)

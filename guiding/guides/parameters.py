@@ -23,6 +23,10 @@ PROPOSALS = ("bins", "uniform")
 PROFILE_STAGES = ("classify", "sample", "pdf")
 #: Passes a profiled guide records before it stops (the benchmark's warm-up passes).
 PROFILE_TRAINING_PASSES = 2
+#: Benchmark instrument (``profile_stage``): the whole bounce computed and recorded, but the path continues along
+#: the BSDF's own sample, so that its cost is the guide's work at ``brdf``'s paths, apart from what the guided paths
+#: themselves cost (they differ in length and in where they go).
+PROFILE_BSDF_PATHS = "bsdf_paths"
 
 #: Least BSDF share of the rejection samplers (see :mod:`guiding.guides.grid`): it bounds hemi_rej's weight by 10·ρ
 #: (measured at door-ajar's vertices, results/bounce_weights.md: second moment 1.8·ρ², against 1.9 at 0.05 and 1.6
@@ -75,8 +79,8 @@ class GridParameters:
         237 ms/spp without them on cornell-box at scale 0.25); they are traced only when on, and only then does
         ``update()`` report ``guided_samples``, ``invalid_share``, ``acceptance_rate`` and
         ``proposals_per_sample``. They never touch the image.
-      profile_stage: None (the guide) or one of :data:`PROFILE_STAGES`: a benchmark instrument that switches the
-        bounce's later parts off (its images are not meant to be correct).
+      profile_stage: None (the guide), one of :data:`PROFILE_STAGES` (a benchmark instrument that switches the
+        bounce's later parts off) or :data:`PROFILE_BSDF_PATHS`; their images are not meant to be correct.
     """
 
     spatial_resolution: int = 8
@@ -107,8 +111,9 @@ class GridParameters:
         _check(0 < self.min_bsdf_share <= 1, f"min_bsdf_share must be in (0, 1], got {self.min_bsdf_share}")
         _check(self.max_proposals >= 1, f"max_proposals must be >= 1, got {self.max_proposals}")
         _check(0 <= self.min_exploration <= 1, f"min_exploration must be in [0, 1], got {self.min_exploration}")
-        _check(self.profile_stage is None or self.profile_stage in PROFILE_STAGES,
-               f"unknown profile stage '{self.profile_stage}' (choose from {', '.join(PROFILE_STAGES)})")
+        _check(self.profile_stage in (None, *PROFILE_STAGES, PROFILE_BSDF_PATHS),
+               f"unknown profile stage '{self.profile_stage}' (choose from "
+               f"{', '.join((*PROFILE_STAGES, PROFILE_BSDF_PATHS))})")
 
 
 @dataclass(frozen=True)
