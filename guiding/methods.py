@@ -52,6 +52,8 @@ def _grid(**parameters) -> Method:
 #: The paper's configurations (S = 8, D = 16), the baselines, and every rule × sampler. ``ours-uniform-proposals``
 #: is ``ours`` with the paper's rejection loop (the same target, about five times the proposals; see GridGuide).
 #: ``{rule}-hemi_inv-pure`` is the paper's hemi_inv without the BSDF share of ours (heavy-tailed; not in the tables).
+#: ``ours-plus`` (beyond the paper, in progress): ``ours`` guiding every smooth reflecting BSDF, with a BSDF share of
+#: at least ``smooth_bsdf_share`` where the BSDF is not purely diffuse.
 METHODS: dict[str, Method] = {
     "brdf": Method(".guides.bsdf", "BSDFGuide"),
     "sdtree": Method(".guides.sdtree", "SDTreeGuide", SDTreeParameters()),
@@ -60,6 +62,7 @@ METHODS: dict[str, Method] = {
     "ours-uniform-proposals": _grid(rule="sarsa", sampler="hemi_rej_plus", proposal="uniform"),
     "ours-no-rejopt": _grid(rule="sarsa", sampler="hemi_rej"),
     "ours-expected": _grid(rule="expected_sarsa", sampler="hemi_rej_plus"),
+    "ours-plus": _grid(rule="sarsa", sampler="hemi_rej_plus", guided_bsdfs="smooth"),
     **{f"{rule}-{sampler}": _grid(rule=rule, sampler=sampler) for rule in RULES for sampler in SAMPLERS},
     **{f"{rule}-hemi_inv-pure": _grid(rule=rule, sampler="hemi_inv", bsdf_fraction=0.0) for rule in RULES},
 }

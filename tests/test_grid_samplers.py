@@ -10,10 +10,10 @@ from guiding.guides.grid import GridGuide
 from guiding.testing import GuideAdapter, chi_square
 
 
-def _trained_guide(sampler: str, proposal: str, D: int, table: str, normal) -> GridGuide:
+def _trained_guide(sampler: str, proposal: str, D: int, table: str, normal, **overrides) -> GridGuide:
     """A guide whose Q in cell 0 is random: ``peaked`` (a few bright bins) or ``flat`` (within 10 %)."""
     guide = GridGuide(spatial_resolution=2, directional_resolution=D, rule="sarsa", sampler=sampler,
-                      proposal=proposal)
+                      proposal=proposal, **overrides)
     record = guide.record_table
     record.set_bounds(mi.BoundingBox3f(mi.ScalarPoint3f(0), mi.ScalarPoint3f(1)))
     rng = np.random.default_rng(D + len(table) + SAMPLERS.index(sampler))
@@ -57,4 +57,28 @@ def test_sampler_pdf_matches_samples(sampler, proposal, D, table, normal_name):
     # (bin edges, the uniform share's horizon), and 32 integrated them 0.15 % low (a false rejection at p = 3e-5).
     passed, messages = chi_square(adapter.sample_func, adapter.pdf_func, test_count=TEST_COUNT, sample_count=400_000,
                                   res=64, ires=64)
+    assert passed, messages
+
+
+#: Smooth BSDFs that ``guided_bsdfs="smooth"`` guides (ours-plus): the mixture with their own sampling.
+SMOOTH_BSDFS = {"roughplastic": {"type": "roughplastic", "alpha": 0.3},
+                "roughconductor": {"type": "roughconductor", "alpha": 0.2}}
+SMOOTH_CONFIGURATIONS = [("hemi_rej_plus", "bins"), ("hemi_inv", "bins")]
+
+
+@pytest.mark.parametrize("sampler, proposal", SMOOTH_CONFIGURATIONS)
+@pytest.mark.parametrize("bsdf_name", list(SMOOTH_BSDFS))
+@pytest.mark.parametrize("normal_name", list(NORMALS))
+def test_smooth_bsdf_mixture_pdf_matches_samples(sampler, proposal, bsdf_name, normal_name):
+    """At a glossy vertex the guide mixes with the BSDF's own sampling (share ≥ smooth_bsdf_share) and reports
+    the exact mixture density."""
+    normal = NORMALS[normal_name]
+    guide = _trained_guide(sampler, proposal, 16, "peaked", normal, guided_bsdfs="smooth")
+    bsdf = mi.load_dict(SMOOTH_BSDFS[bsdf_name])
+    adapter = GuideAdapter(guide, normal, bsdf=bsdf)
+    si, bsdf_ptr = adapter.vertex(1)
+    assert guide._vertex(si, bsdf_ptr, mi.Bool(True), mark_visited=False).guided[0], "the glossy vertex is not guided"
+    passed, messages = chi_square(adapter.sample_func, adapter.pdf_func,
+                                  test_count=len(SMOOTH_CONFIGURATIONS) * len(SMOOTH_BSDFS) * len(NORMALS),
+                                  sample_count=400_000, res=64, ires=64)
     assert passed, messages

@@ -67,7 +67,7 @@ class _Vertex:
     row: mi.UInt32 = None          # first entry of the pair's row of ``hemi_cdf``
     centre: mi.Vector3f = None     # n_c, the normal bin's centre on the arrival side (world)
     bound: mi.Float = None         # M ≥ max P·cos(ω, n_c)
-    bsdf_share: mi.Float = None    # u = max(ε_r, min_bsdf_share)
+    bsdf_share: mi.Float = None    # u: bsdf_fraction, or max(ε_r, min_bsdf_share); ≥ smooth_bsdf_share if not diffuse
 
 
 def _invert_cdf(cdf: mi.Float, row: mi.UInt32, size: int, u: mi.Float, active: mi.Bool) -> mi.UInt32:
@@ -103,11 +103,13 @@ def _arrival_side(si: mi.SurfaceInteraction3f) -> mi.Float:
     return dr.select(si.wi.z < 0, -1.0, 1.0)
 
 
-def guidable(bsdf: mi.BSDFPtr) -> mi.Bool:
-    """Purely diffuse reflection: the BSDFs the paper guides (glossy, delta and transmissive lobes are not)."""
-    flags = bsdf.flags()
-    return (mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Glossy)
-            & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & ~mi.has_flag(flags, mi.BSDFFlags.DiffuseTransmission))
+def guidable(bsdf: mi.BSDFPtr, smooth: bool = False) -> mi.Bool:
+    """Purely diffuse reflection: the BSDFs the paper guides (glossy, delta and transmissive lobes are not). With
+    ``smooth``, every reflecting BSDF without a delta, null or transmissive lobe (rough plastic and conductors too)."""
+    flags, F = bsdf.flags(), mi.BSDFFlags
+    reflects = F.DiffuseReflection | (F.GlossyReflection if smooth else 0)
+    excluded = F.Delta | F.DiffuseTransmission | F.GlossyTransmission | (F.Null if smooth else F.Glossy)
+    return ((flags & int(reflects)) != 0) & ((flags & int(excluded)) == 0)
 
 
 class GridGuide(Guide):
@@ -127,6 +129,8 @@ class GridGuide(Guide):
         self.bsdf_fraction = p.bsdf_fraction
         self.max_proposals = p.max_proposals
         self.min_bsdf_share = p.min_bsdf_share
+        self.smooth = p.guided_bsdfs == "smooth"
+        self.smooth_bsdf_share = p.smooth_bsdf_share
         self.statistics = p.statistics
         #: Benchmark instrument: how far the bounce goes (index into PROFILE_STAGES; len = the whole guide).
         self._stage = PROFILE_STAGES.index(p.profile_stage) if p.profile_stage in PROFILE_STAGES else len(PROFILE_STAGES)
@@ -212,7 +216,7 @@ class GridGuide(Guide):
             bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(guided), sampler.next_2d(guided), guided)
             return bs, weight * 0.5
         if self.sampler.endswith("_inv"):
-            use_guide = guided & (sampler.next_1d(guided) >= self.bsdf_fraction)
+            use_guide = guided & (sampler.next_1d(guided) >= vertex.bsdf_share)
             guide_world, guide_bin = self._sample_inversion(sampler, vertex, use_guide)
         else:
             searching = guided & (sampler.next_1d(guided) >= vertex.bsdf_share)
@@ -254,7 +258,7 @@ class GridGuide(Guide):
         """The vertex's cell, arrival side, (cell, normal bin) pair and its N; marks a pair without memo visited
         (the memoised ones stay marked: written at every vertex, the flags cost the cores' caches a line each)."""
         table = self.record_table
-        vertex = _Vertex(guided=active & guidable(bsdf), cell=table.cell(si.p), side=_arrival_side(si))
+        vertex = _Vertex(guided=active & guidable(bsdf, self.smooth), cell=table.cell(si.p), side=_arrival_side(si))
         if table.needs_pairs:
             vertex.pair = table.pair(vertex.cell, si.sh_frame.n * vertex.side)
             vertex.norm = dr.gather(mi.Float, table.norm, vertex.pair, vertex.guided)
@@ -271,6 +275,7 @@ class GridGuide(Guide):
             vertex.guided &= vertex.norm > 0
         if table.needs_hemi_cdf:
             vertex.row = dr.gather(mi.UInt32, table.row_of, vertex.pair, vertex.guided)
+        vertex.bsdf_share = mi.Float(self.bsdf_fraction)
         if self.sampler.startswith("hemi_rej"):
             vertex.centre = table.normal_bins.normal(vertex.pair % table.normal_bins.count)
             vertex.bound = dr.gather(mi.Float, table.bound, vertex.pair, vertex.guided)
@@ -279,6 +284,10 @@ class GridGuide(Guide):
                 c = vertex.norm / (2 * dr.pi * vertex.bound)     # ū/M, the mean of P·cos over its maximum
                 share = dr.maximum((1 - 2 * c) / (2 - 2 * c), 0)
             vertex.bsdf_share = dr.maximum(share, self.min_bsdf_share)
+        if self.smooth:
+            glossy = ~guidable(bsdf)
+            vertex.bsdf_share = dr.select(glossy, dr.maximum(vertex.bsdf_share, self.smooth_bsdf_share),
+                                          vertex.bsdf_share)
         return vertex
 
     def _mixture_pdf(self, vertex, world: mi.Vector3f, bsdf_pdf: mi.Float, chosen_bin=None) -> mi.Float:
@@ -290,7 +299,7 @@ class GridGuide(Guide):
         table = self.record_table
         k = table.bins.index(world) if chosen_bin is None else chosen_bin
         if self.sampler.endswith("_inv"):
-            share = self.bsdf_fraction
+            share = vertex.bsdf_share
             return share * bsdf_pdf + (1 - share) * self._bin_probability(vertex, k) / table.bins.solid_angle
         if self.proposal == "bins":
             miss_all = dr.gather(mi.Float, table.in_bin_miss, vertex.pair, vertex.guided)
@@ -384,7 +393,7 @@ class GridGuide(Guide):
 
     def record(self, state, si, emitted, bs, weight, continues, active):
         # Only segments that leave a guidable surface are recorded: Q is read nowhere else.
-        leaves = continues & guidable(si.bsdf())
+        leaves = continues & guidable(si.bsdf(), self.smooth)
         if self.rule == "mc":
             here = dr.select(leaves, self.record_table.index(si.p, si.to_world(bs.wo)), NO_RECORD)
             return self._mc_log.append(state, emitted, weight, continues, here, active)

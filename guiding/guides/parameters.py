@@ -10,6 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 RULES = ("mc", "sarsa", "expected_sarsa")
+#: Which surfaces a grid guide guides: ``diffuse`` (purely diffuse reflection, the paper's) or ``smooth`` (every
+#: reflecting BSDF without a delta lobe: rough plastic and conductors too).
+GUIDED_BSDFS = ("diffuse", "smooth")
 SAMPLERS = ("sphere_inv", "hemi_inv", "hemi_rej", "hemi_rej_plus")
 #: How the rejection samplers draw their target: ``bins`` (exactly: a bin from the pair's CDF of P·∫cos, then a
 #: direction ∝ cos inside it) or the paper's loop of ``uniform`` proposals (see :mod:`guiding.guides.grid`).
@@ -74,6 +77,9 @@ class GridParameters:
       min_bsdf_share: least BSDF share of the rejection samplers (default :data:`MIN_BSDF_SHARE`).
       min_exploration: floor of the exploration share ε (default :data:`MIN_EXPLORATION`; 0 is the paper's
         schedule exactly).
+      guided_bsdfs: ``diffuse`` (default, the paper's) or ``smooth`` (:data:`GUIDED_BSDFS`).
+      smooth_bsdf_share: least BSDF share at guided vertices whose BSDF is not purely diffuse (default 0.5, the
+        SD-tree's mixture): the guide knows nothing of a glossy lobe, the BSDF's sampling covers it.
       statistics: count, per pass, guided vertices, invalid samples, rejection proposals and acceptances (default
         False). The counters are atomics on 1-element arrays, several per bounce (measured: ``ours`` 301 against
         237 ms/spp without them on cornell-box at scale 0.25); they are traced only when on, and only then does
@@ -93,6 +99,8 @@ class GridParameters:
     max_proposals: int = 64
     min_bsdf_share: float = MIN_BSDF_SHARE
     min_exploration: float = MIN_EXPLORATION
+    guided_bsdfs: str = "diffuse"
+    smooth_bsdf_share: float = 0.5
     statistics: bool = False
     profile_stage: str | None = None
 
@@ -111,6 +119,9 @@ class GridParameters:
         _check(0 < self.min_bsdf_share <= 1, f"min_bsdf_share must be in (0, 1], got {self.min_bsdf_share}")
         _check(self.max_proposals >= 1, f"max_proposals must be >= 1, got {self.max_proposals}")
         _check(0 <= self.min_exploration <= 1, f"min_exploration must be in [0, 1], got {self.min_exploration}")
+        _check(self.guided_bsdfs in GUIDED_BSDFS,
+               f"unknown guided_bsdfs '{self.guided_bsdfs}' (choose from {', '.join(GUIDED_BSDFS)})")
+        _check(0 < self.smooth_bsdf_share < 1, f"smooth_bsdf_share must be in (0, 1), got {self.smooth_bsdf_share}")
         _check(self.profile_stage in (None, *PROFILE_STAGES, PROFILE_BSDF_PATHS),
                f"unknown profile stage '{self.profile_stage}' (choose from "
                f"{', '.join((*PROFILE_STAGES, PROFILE_BSDF_PATHS))})")
