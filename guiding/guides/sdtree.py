@@ -100,13 +100,15 @@ class _TreeGuide(Guide):
         use_bsdf = s1 < frac
         bs, bsdf_weight = bsdf.sample(bsdf_ctx, si, dr.minimum(s1 / frac, ONE_MINUS_EPS), s2, active & use_bsdf)
         use_tree = guided & ~use_bsdf
-        d_tree, p_tree_sampled = self._sampling.sample_dir(tree, s2, use_tree)
-        wo_world = dr.select(use_tree, d_tree, si.to_world(bs.wo))
+        bsdf_dir = si.to_world(bs.wo)
+        # One descent of the D-tree: the direction it draws in the lanes that sample it, and the density of the
+        # BSDF's direction in the others. The density of a direction the tree drew is the one its descent found:
+        # looking the (rounded) direction up again could land in a neighbouring leaf of side ~1e-6 with a very
+        # different density.
+        d_tree, p_tree = self._sampling.sample_or_pdf_dir(tree, s2, bsdf_dir, use_tree, guided)
+        wo_world = dr.select(use_tree, d_tree, bsdf_dir)
         wo = si.to_local(wo_world)
         value, p_bsdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
-        # The D-tree density of a direction it drew is the one its descent found: looking the (rounded) direction
-        # up again could land in a neighbouring leaf of side ~1e-6 with a very different density.
-        p_tree = dr.select(use_tree, p_tree_sampled, self._sampling.pdf_dir(tree, wo_world, guided & use_bsdf))
         p_mix = self.bsdf_fraction * p_bsdf + (1 - self.bsdf_fraction) * p_tree
         mix_weight = dr.select(p_mix > 0, value / p_mix, 0)
 
