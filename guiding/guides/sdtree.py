@@ -299,7 +299,7 @@ class SDTreeGuide(_TreeGuide):
     def _structure_stats(self) -> dict:
         stats = {"iteration": self.iteration, "stree_nodes": self.stree.n_nodes, "stree_leaves": self.stree.n_leaves,
                  "stree_max_depth": max(self.stree.depth),
-                 "memory_bytes": self._memory_bytes() + 16 * self.stree.n_nodes,
+                 "memory_bytes": self._memory_bytes() + sum(4 * dr.width(a) for a in self._s_device.values()),
                  "iteration_start_spp": self.iteration_start_spp, "iteration_end_spp": self.iteration_end_spp,
                  "final_iteration": self.is_final_iteration}
         stats.update(self._forest_stats(self._sampling_host, "dtree"))
