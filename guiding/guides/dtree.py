@@ -238,6 +238,14 @@ def _node_probabilities(prob: mi.Float, base: mi.UInt32, active: mi.Bool):
     return p0, p1, p2, p3, p0 + p1 + p2 + p3
 
 
+def _per_lane(draw, drawn, looked):
+    """``drawn`` in the lanes of mask ``draw``, ``looked`` in the others; a Python bool ``draw`` takes one of them
+    whole (the other is None: :meth:`DeviceForest.descend` did not trace it)."""
+    if draw is True or draw is False:
+        return drawn if draw else looked
+    return dr.select(draw, drawn, looked)
+
+
 def _quadrant(right: mi.Bool, up: mi.Bool) -> mi.UInt32:
     """Quadrant ``q = qx + 2·qy`` of the upper halves in ``u`` (``right``) and in ``v`` (``up``)."""
     return dr.select(right, mi.UInt32(1), mi.UInt32(0)) + dr.select(up, mi.UInt32(2), mi.UInt32(0))
@@ -262,64 +270,77 @@ class DeviceForest:
 
     # ----------------------------------------------------------------------------------------- device code
     @dr.syntax
-    def sample_uv(self, tree, sample, active=True):
-        """Descend tree ``tree`` with the 2D ``sample``: a point of the square and its density there."""
+    def descend(self, tree, point, draw, active=True, with_pdf=True):
+        """Descend tree ``tree`` to a leaf: (its slot ``4·node + q``, the point drawn, the density there).
+
+        Lanes with ``draw`` sample: ``point`` is a 2D sample, quadrants are chosen with their probabilities (first the
+        ``u`` half, then the ``v`` half, reusing the rescaled random number as in Müller's code) and the point drawn is
+        uniform in the leaf. The other lanes look a point up: ``point`` lies in the square, the leaf is the one that
+        contains it, and the point returned means nothing. ``draw`` is a Python bool (every lane alike; only that
+        half of the loop is traced) or a mask, with which the mixture sampler draws from the tree in some lanes and
+        finds the density of the BSDF's direction in the others in one descent instead of two. ``with_pdf=False``
+        (lookups only) skips the probabilities."""
         child, prob = self.child, self.prob
         node = mi.UInt32(tree)
-        s = mi.Point2f(sample)
+        x = mi.Point2f(point)
         origin = mi.Point2f(0)
         size = mi.Float(1)
-        pdf = mi.Float(1)
-        go = mi.Bool(active)
-        while go:
-            base = node * 4
-            p0, p1, p2, p3, total = _node_probabilities(prob, base, go)
-            valid = total > 0
-            px = dr.select(valid, (p0 + p2) / total, 0.5)
-            right = s.x >= px
-            sx = dr.select(right, (s.x - px) / (1 - px), s.x / px)
-            a = dr.select(right, p1, p0)
-            b = dr.select(right, p3, p2)
-            ab_valid = (a + b) > 0
-            py = dr.select(ab_valid, a / (a + b), 0.5)
-            up = s.y >= py
-            sy = dr.select(up, (s.y - py) / (1 - py), s.y / py)
-            s = mi.Point2f(dr.clip(sx, 0, ONE_MINUS_EPS), dr.clip(sy, 0, ONE_MINUS_EPS))
-            chosen = dr.select(up, b, a)
-            pdf *= dr.select(valid, 4 * chosen / total, 1)
-            size *= 0.5
-            origin += mi.Point2f(dr.select(right, size, 0), dr.select(up, size, 0))
-            q = _quadrant(right, up)
-            node = dr.gather(mi.UInt32, child, base + q, go)
-            go &= node != 0
-        # A leaf of side 2^-20 spans only a few dozen floats: keep the rounded point inside the leaf it came from.
-        upper = _prev_float(origin + size)
-        uv = mi.Point2f(dr.minimum(origin.x + size * s.x, upper.x), dr.minimum(origin.y + size * s.y, upper.y))
-        return uv, pdf
-
-    @dr.syntax
-    def lookup_uv(self, tree, uv, active=True, with_pdf=True):
-        """Leaf slot (``4·node + q``) containing ``uv`` in tree ``tree``, and the density there."""
-        child, prob = self.child, self.prob
-        node = mi.UInt32(tree)
-        x = mi.Point2f(uv)
         pdf = mi.Float(1)
         slot = mi.UInt32(0)
         go = mi.Bool(active)
         while go:
             base = node * 4
-            x2 = x * 2
-            right = x2.x >= 1
-            up = x2.y >= 1
-            x = mi.Point2f(dr.select(right, x2.x - 1, x2.x), dr.select(up, x2.y - 1, x2.y))
-            q = _quadrant(right, up)
-            if dr.hint(with_pdf, mode="scalar"):
+            if dr.hint(with_pdf or draw is not False, mode="scalar"):
                 p0, p1, p2, p3, total = _node_probabilities(prob, base, go)
-                chosen = dr.select(right, dr.select(up, p3, p1), dr.select(up, p2, p0))
+            if dr.hint(draw is not False, mode="scalar"):
+                # A drawn quadrant depends on the probabilities just read: reading its four children along with them,
+                # rather than the chosen one after the choice, makes one round of memory accesses per level, not two.
+                children = [dr.gather(mi.UInt32, child, base + q, go) for q in range(4)]
+            if dr.hint(draw is not False, mode="scalar"):
+                px = dr.select(total > 0, (p0 + p2) / total, 0.5)
+                drawn_right = x.x >= px
+                a = dr.select(drawn_right, p1, p0)
+                b = dr.select(drawn_right, p3, p2)
+                py = dr.select((a + b) > 0, a / (a + b), 0.5)
+                drawn_up = x.y >= py
+                drawn = mi.Point2f(dr.clip(dr.select(drawn_right, (x.x - px) / (1 - px), x.x / px), 0, ONE_MINUS_EPS),
+                                   dr.clip(dr.select(drawn_up, (x.y - py) / (1 - py), x.y / py), 0, ONE_MINUS_EPS))
+            else:
+                drawn_right = drawn_up = drawn = None
+            if dr.hint(draw is not True, mode="scalar"):
+                x2 = x * 2
+                looked_right, looked_up = x2.x >= 1, x2.y >= 1
+                looked = mi.Point2f(dr.select(looked_right, x2.x - 1, x2.x), dr.select(looked_up, x2.y - 1, x2.y))
+            else:
+                looked_right = looked_up = looked = None
+            right = _per_lane(draw, drawn_right, looked_right)
+            up = _per_lane(draw, drawn_up, looked_up)
+            x = _per_lane(draw, drawn, looked)
+            if dr.hint(with_pdf, mode="scalar"):
+                chosen = dr.select(up, dr.select(right, p3, p2), dr.select(right, p1, p0))
                 pdf *= dr.select(total > 0, 4 * chosen / total, 1)
-            slot = base + q
-            node = dr.gather(mi.UInt32, child, slot, go)
+            size *= 0.5
+            origin += mi.Point2f(dr.select(right, size, 0), dr.select(up, size, 0))
+            slot = base + _quadrant(right, up)
+            if dr.hint(draw is not False, mode="scalar"):
+                c0, c1, c2, c3 = children
+                node = dr.select(up, dr.select(right, c3, c2), dr.select(right, c1, c0))
+            else:
+                node = dr.gather(mi.UInt32, child, slot, go)
             go &= node != 0
+        # A leaf of side 2^-20 spans only a few dozen floats: keep the rounded point inside the leaf it came from.
+        upper = _prev_float(origin + size)
+        uv = mi.Point2f(dr.minimum(origin.x + size * x.x, upper.x), dr.minimum(origin.y + size * x.y, upper.y))
+        return slot, uv, pdf
+
+    def sample_uv(self, tree, sample, active=True):
+        """Descend tree ``tree`` with the 2D ``sample``: a point of the square and its density there."""
+        _, uv, pdf = self.descend(tree, sample, True, active)
+        return uv, pdf
+
+    def lookup_uv(self, tree, uv, active=True, with_pdf=True):
+        """Leaf slot (``4·node + q``) containing ``uv`` in tree ``tree``, and the density there."""
+        slot, _, pdf = self.descend(tree, uv, False, active, with_pdf)
         return slot, pdf
 
     def sample_dir(self, tree, sample, active=True):
@@ -335,3 +356,10 @@ class DeviceForest:
     def slot_of_dir(self, tree, d, active=True):
         slot, _ = self.lookup_uv(tree, dir_to_uv(d), active, with_pdf=False)
         return slot
+
+    def sample_or_pdf_dir(self, tree, sample, d, draw, active=True):
+        """In one descent of tree ``tree``: lanes with ``draw`` draw a world direction with the 2D ``sample``, the
+        others look world direction ``d`` up; returns (the direction drawn, meaningless where not ``draw``; the
+        solid-angle density of the lane's direction)."""
+        _, uv, pdf = self.descend(tree, dr.select(draw, mi.Point2f(sample), dir_to_uv(d)), draw, active)
+        return uv_to_dir(uv), pdf * INV_4PI

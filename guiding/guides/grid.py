@@ -387,7 +387,7 @@ class GridGuide(Guide):
     # ---------------------------------------------------------------- learning
     def new_paths(self, size: int, max_depth: int):
         if self.rule == "mc":
-            self._mc_log = VertexLog(size, max_depth)
+            self._mc_log = VertexLog(max_depth)
             return self._mc_log.new_paths()
         return SarsaState(dr.full(mi.UInt32, NO_RECORD, size))
 
@@ -425,6 +425,5 @@ class GridGuide(Guide):
     def finish_paths(self, state) -> None:
         if self.rule == "mc":
             # Monte Carlo targets: the radiance each segment brought back, walked as soon as the paths end.
-            walk_backward(self._mc_log, state,
-                          lambda entry, target, L: self.record_table.accumulate(target, dr.mean(L),
-                                                                                target != NO_RECORD))
+            walk_backward(state, lambda entry, L: self.record_table.accumulate(entry.target, dr.mean(L),
+                                                                               entry.target != NO_RECORD))

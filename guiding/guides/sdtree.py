@@ -10,14 +10,13 @@ Two guides share the D-tree code (:mod:`guiding.guides.dtree`):
   Kim & Kim 2021).
 
 **Monte Carlo recording** (:mod:`guiding.guides.vertex_log`). In the path loop, :meth:`record` logs every
-(path, vertex) of the pass: the emitted radiance ``Le`` (RGB), the weight ``w = f·cos/pdf`` including Russian
-roulette (RGB, 0 where the path ends), and, for vertices whose sampled direction was traced and not delta-sampled,
-the leaf slot of that direction in the recording D-tree and its pdf. After the pass, a second kernel (started by
-:meth:`update`, once the render kernel has run: Dr.Jit would otherwise have to evaluate the log in the middle of
-the render) walks every path backwards, ``L ← Le_i + w_i·L``, and adds ``mean_rgb(L_{i+1}) / pdf_i`` (the incident
-radiance along the sampled direction over its pdf) to the leaf, and one to the vertex count of the vertex's D-tree
-(S-tree leaf). The log takes 32 bytes per (path, vertex): ``pixels × pass_spp × max_depth × 32`` bytes per pass
-(314 MB at 320 × 240, 8 spp, depth 16).
+vertex of a path in the local memory of its lane: the emitted radiance ``Le`` (RGB), the weight ``w = f·cos/pdf``
+including Russian roulette (RGB, 0 where the path ends), and, for vertices whose sampled direction was traced and not
+delta-sampled, the leaf slot of that direction in the recording D-tree and its pdf. Once the path is complete, still
+in the render kernel (:meth:`finish_paths`), it is walked backwards, ``L ← Le_i + w_i·L``, adding
+``mean_rgb(L_{i+1}) / pdf_i`` (the incident radiance along the sampled direction over its pdf) to the leaf, and one
+to the vertex count of the vertex's D-tree (S-tree leaf). The log takes no device memory; :meth:`update` reads the
+accumulators the kernel filled.
 """
 
 from __future__ import annotations
@@ -56,8 +55,7 @@ class _TreeGuide(Guide):
         self.rho = parameters.rho
         self.dtree_max_depth = parameters.dtree_max_depth
         self.max_nodes = parameters.max_nodes
-        self._logs: list[VertexLog] = []                 # the passes rendered since the last update
-        self._log_bytes = 0
+        self._log: VertexLog | None = None               # how the paths of the pass log their vertices
         self._sampling: DeviceForest | None = None
         self._recording: DeviceForest | None = None
         self._energy_acc = None
@@ -74,10 +72,8 @@ class _TreeGuide(Guide):
     def new_paths(self, size: int, max_depth: int):
         if not self.records():
             return NoPathState()
-        log = VertexLog(size, max_depth, with_pdf=True)
-        self._logs.append(log)
-        self._log_bytes = log.nbytes
-        return log.new_paths()
+        self._log = VertexLog(max_depth, with_pdf=True)
+        return self._log.new_paths()
 
     def guided_mask(self, tree, bsdf: mi.BSDFPtr, active):
         """Lanes that mix in the D-tree: not a delta BSDF, and a D-tree that has seen energy."""
@@ -104,13 +100,15 @@ class _TreeGuide(Guide):
         use_bsdf = s1 < frac
         bs, bsdf_weight = bsdf.sample(bsdf_ctx, si, dr.minimum(s1 / frac, ONE_MINUS_EPS), s2, active & use_bsdf)
         use_tree = guided & ~use_bsdf
-        d_tree, p_tree_sampled = self._sampling.sample_dir(tree, s2, use_tree)
-        wo_world = dr.select(use_tree, d_tree, si.to_world(bs.wo))
+        bsdf_dir = si.to_world(bs.wo)
+        # One descent of the D-tree: the direction it draws in the lanes that sample it, and the density of the
+        # BSDF's direction in the others. The density of a direction the tree drew is the one its descent found:
+        # looking the (rounded) direction up again could land in a neighbouring leaf of side ~1e-6 with a very
+        # different density.
+        d_tree, p_tree = self._sampling.sample_or_pdf_dir(tree, s2, bsdf_dir, use_tree, guided)
+        wo_world = dr.select(use_tree, d_tree, bsdf_dir)
         wo = si.to_local(wo_world)
         value, p_bsdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
-        # The D-tree density of a direction it drew is the one its descent found: looking the (rounded) direction
-        # up again could land in a neighbouring leaf of side ~1e-6 with a very different density.
-        p_tree = dr.select(use_tree, p_tree_sampled, self._sampling.pdf_dir(tree, wo_world, guided & use_bsdf))
         p_mix = self.bsdf_fraction * p_bsdf + (1 - self.bsdf_fraction) * p_tree
         mix_weight = dr.select(p_mix > 0, value / p_mix, 0)
 
@@ -128,44 +126,30 @@ class _TreeGuide(Guide):
                   & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
         tree = self._locate(si.p, traced)
         slot = self._recording.slot_of_dir(tree, si.to_world(bs.wo), traced)
-        return self._logs[-1].append(state, emitted, weight, continues, dr.select(traced, slot, NO_RECORD), active,
-                                     pdf=bs.pdf)
+        return self._log.append(state, emitted, weight, continues, dr.select(traced, slot, NO_RECORD), active,
+                                pdf=bs.pdf)
 
     def finish_paths(self, state) -> None:
-        self._logs[-1].keep(state)
+        walk_backward(state, self._splat)
 
     # ---------------------------------------------------------------------------------------- host side
     def _reset_accumulators(self) -> None:
-        # Capacities rounded up to powers of two: the splat kernel's atomics depend on the target size, so this
-        # keeps it from being recompiled whenever the trees change a little.
+        # Capacities rounded up to powers of two: the atomics of the backward walk (in the render kernel) depend on
+        # the target size, so this keeps the kernel from being recompiled whenever the trees change a little.
         self._energy_acc = dr.zeros(mi.Float, _capacity(4 * self._recording.n_nodes))
         self._count_acc = dr.zeros(mi.Float, _capacity(self._recording.n_trees))
         dr.eval(self._energy_acc, self._count_acc)
 
-    def _splat(self, log: VertexLog) -> None:
-        """Backward walk over one pass's vertex log: ``mean_rgb(L)/pdf`` into the recording D-tree leaves, and one
-        to the vertex count of each recorded vertex's D-tree."""
-        def visit(entry, slot, L):
-            recorded = slot != NO_RECORD
-            pdf = dr.gather(mi.Float, log.pdf, entry)
-            # The RGB mean as a sum times 1/3: dr.mean (the grid's) rounds differently, and would change the trees.
-            value = (L.x + L.y + L.z) * (1.0 / 3.0) / pdf
-            dr.scatter_reduce(dr.ReduceOp.Add, self._energy_acc, value, slot,
-                              recorded & (value > 0) & dr.isfinite(value))
-            tree = dr.gather(mi.UInt32, self._recording.tree_of_node, slot // 4, recorded)
-            dr.scatter_reduce(dr.ReduceOp.Add, self._count_acc, mi.Float(1), tree, recorded)
-
-        walk_backward(log, log.kept(), visit)
-
-    def _splat_logs(self) -> float:
-        """Process the vertex records of every pass rendered since the last call; returns its seconds."""
-        start = time.perf_counter()
-        for log in self._logs:
-            self._splat(log)
-        self._logs.clear()
-        dr.eval(self._energy_acc, self._count_acc)
-        dr.sync_thread()
-        return time.perf_counter() - start
+    def _splat(self, entry, L) -> None:
+        """One vertex of the backward walk (in the render kernel): ``mean_rgb(L)/pdf`` into its recording D-tree
+        leaf, and one to the vertex count of its D-tree."""
+        slot = entry.target
+        recorded = slot != NO_RECORD
+        # The RGB mean as a sum times 1/3: dr.mean (the grid's) rounds differently, and would change the trees.
+        value = (L.x + L.y + L.z) * (1.0 / 3.0) / entry.pdf
+        dr.scatter_reduce(dr.ReduceOp.Add, self._energy_acc, value, slot, recorded & (value > 0) & dr.isfinite(value))
+        tree = dr.gather(mi.UInt32, self._recording.tree_of_node, slot // 4, recorded)
+        dr.scatter_reduce(dr.ReduceOp.Add, self._count_acc, mi.Float(1), tree, recorded)
 
     def _pull(self) -> tuple[np.ndarray, np.ndarray]:
         """The recorded leaf energies and vertex counts. Entries that are NaN, ±Inf or negative (a float32 sum
@@ -186,7 +170,7 @@ class _TreeGuide(Guide):
                 f"{prefix}_max_depth": forest.max_depth()}
 
     def _memory_bytes(self) -> int:
-        total = self._log_bytes
+        total = 0
         for f in {id(self._sampling): self._sampling, id(self._recording): self._recording}.values():
             if f is not None:
                 total += f.nbytes
@@ -247,7 +231,6 @@ class SDTreeGuide(_TreeGuide):
         current iteration becomes the final one and runs to the end of the budget, so it has no end spp."""
         self.is_final_iteration = True
         self._recording_on = False
-        self._logs.clear()
         self.iteration_end_spp = None
 
     # ------------------------------------------------------------------------------------ host side
@@ -261,7 +244,6 @@ class SDTreeGuide(_TreeGuide):
         self._sampling = DeviceForest(self._sampling_host)
         self._recording = DeviceForest(self._recording_host)
         self._reset_accumulators()
-        self._logs.clear()
         self._recording_on = True
         self.iteration = 0
         self._start_iteration(0)
@@ -274,13 +256,13 @@ class SDTreeGuide(_TreeGuide):
         return self._recording_on
 
     def update(self, spp_done: int) -> UpdateResult:
-        """Splat the pass's records; at the end of an iteration, refine. ``iteration`` in the returned statistics
-        is the iteration the pass belonged to; ``iteration_done`` marks the pass that ended it (the distributions
-        change after it; a renderer keeping only the last iteration restarts its accumulation there)."""
+        """At the end of an iteration, refine from what its passes recorded (their render kernels filled the
+        accumulators). ``iteration`` in the returned statistics is the iteration the pass belonged to;
+        ``iteration_done`` marks the pass that ended it (the distributions change after it; a renderer keeping only
+        the last iteration restarts its accumulation there)."""
         pass_iteration = self.iteration
         recorded = self.records()
-        splat_seconds = self._splat_logs() if recorded else 0.0
-        stats = {"splat_seconds": splat_seconds, "refine_seconds": 0.0}
+        stats = {"refine_seconds": 0.0}
         iteration_done = recorded and not self.is_final_iteration and spp_done >= self.iteration_end_spp
         if iteration_done:
             stats.update(self._refine())
@@ -317,7 +299,7 @@ class SDTreeGuide(_TreeGuide):
     def _structure_stats(self) -> dict:
         stats = {"iteration": self.iteration, "stree_nodes": self.stree.n_nodes, "stree_leaves": self.stree.n_leaves,
                  "stree_max_depth": max(self.stree.depth),
-                 "memory_bytes": self._memory_bytes() + 16 * self.stree.n_nodes,
+                 "memory_bytes": self._memory_bytes() + sum(4 * dr.width(a) for a in self._s_device.values()),
                  "iteration_start_spp": self.iteration_start_spp, "iteration_end_spp": self.iteration_end_spp,
                  "final_iteration": self.is_final_iteration}
         stats.update(self._forest_stats(self._sampling_host, "dtree"))
@@ -361,13 +343,11 @@ class QuadtreeGridGuide(_TreeGuide):
                                                keep_energy=True, max_nodes=self.max_nodes)
         self._sampling = self._recording = DeviceForest(self._forest)
         self._reset_accumulators()
-        self._logs.clear()
 
     def _locate(self, p, active):
         return self._cells.cell(p)
 
     def update(self, spp_done: int) -> UpdateResult:
-        splat_seconds = self._splat_logs()
         start = time.perf_counter()
         energy, _ = self._pull()
         self._forest.deposit(energy, accumulate=True)
@@ -377,7 +357,7 @@ class QuadtreeGridGuide(_TreeGuide):
         self._sampling = self._recording = DeviceForest(self._forest)
         self._reset_accumulators()
         dr.sync_thread()
-        stats = {"splat_seconds": splat_seconds, "refine_seconds": time.perf_counter() - start,
+        stats = {"refine_seconds": time.perf_counter() - start,
                  "refine_host_seconds": host_seconds, "energy_recorded": float(energy.sum()), **self.sanitised}
         stats.update(self._structure_stats())
         return UpdateResult(stats)

@@ -1,9 +1,10 @@
 """The S-tree of the SD-tree (Müller, Gross, Novák 2017): a binary spatial tree whose leaves own D-trees, and the
 doubling schedule of its training iterations.
 
-**Layout** (:class:`STree`): ``child`` (index of the first of two adjacent children, 0 for a leaf), ``axis`` and
+**Layout** (:class:`STree`): ``child`` (index of the first of two adjacent children, -1 for a leaf), ``axis`` and
 ``split`` (midpoint) per node, ``tree`` (the D-tree of a leaf). A leaf splits at its midpoint along its axis; its
-children split along the next axis (x, y, z, x, …).
+children split along the next axis (x, y, z, x, …), so the root splits along x and a node's axis is its depth mod 3.
+On the device (:meth:`STree.to_device`), two arrays of a word per node.
 """
 
 from __future__ import annotations
@@ -13,6 +14,9 @@ import mitsuba as mi
 import numpy as np
 
 from .dtree import padded
+
+#: The flag of a leaf in the device layout's first word (the rest of the word is the leaf's D-tree index).
+LEAF = 0x80000000
 
 
 class STree:
@@ -79,31 +83,32 @@ class STree:
         return sources
 
     def to_device(self) -> dict:
-        child = np.array([max(c, 0) for c in self.child], dtype=np.uint32)
-        axis = np.array(self.axis, dtype=np.uint32)
+        """The tree for :func:`stree_locate`: per node ``first`` (the first child of an inner node, ``LEAF | D-tree
+        index`` for a leaf) and ``split`` (float32), two gathers per level of the descent; a node's axis follows
+        from its depth."""
+        first = np.array([LEAF | t if c < 0 else c for c, t in zip(self.child, self.tree)], dtype=np.uint32)
         split = np.array([self.split_value(n) for n in range(self.n_nodes)], dtype=np.float32)
-        tree = np.array([t if c < 0 else 0 for t, c in zip(self.tree, self.child)], dtype=np.uint32)
-        arrays = {"child": mi.UInt32(padded(child)), "axis": mi.UInt32(padded(axis)), "split": mi.Float(padded(split)),
-                  "tree": mi.UInt32(padded(tree))}
+        arrays = {"first": mi.UInt32(padded(first)), "split": mi.Float(padded(split))}
         dr.eval(*arrays.values())
         return arrays
 
 
 @dr.syntax
 def stree_locate(arrays: dict, p, active=True):
-    """D-tree index of the S-tree leaf containing ``p`` (device)."""
-    child, axis, split = arrays["child"], arrays["axis"], arrays["split"]
+    """D-tree index of the S-tree leaf containing ``p`` (device); 0 in inactive lanes."""
     node = mi.UInt32(0)
+    axis = mi.UInt32(0)
+    first = mi.UInt32(0)
     go = mi.Bool(active)
     while go:
-        first = dr.gather(mi.UInt32, child, node, go)
-        leaf = first == 0
-        a = dr.gather(mi.UInt32, axis, node, go)
-        mid = dr.gather(mi.Float, split, node, go)
-        coord = dr.select(a == 0, p.x, dr.select(a == 1, p.y, p.z))
-        node = dr.select(leaf, node, first + dr.select(coord >= mid, mi.UInt32(1), mi.UInt32(0)))
+        first = dr.gather(mi.UInt32, arrays["first"], node, go)
+        leaf = first >= LEAF
+        coord = dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
+        above = coord >= dr.gather(mi.Float, arrays["split"], node, go)
+        node = dr.select(leaf, node, first + dr.select(above, mi.UInt32(1), mi.UInt32(0)))
+        axis = dr.select(axis == 2, mi.UInt32(0), axis + 1)
         go &= ~leaf
-    return dr.gather(mi.UInt32, arrays["tree"], node, active)
+    return first & (LEAF - 1)
 
 
 # ===================================================================================================================
