@@ -61,12 +61,15 @@ class SphereBins:
         cell = dr.clip(mi.Vector2i(dr.floor(uv * n)), 0, n - 1)
         return dr.select(lower, n * n, 0) + mi.UInt32(cell.y * n + cell.x)
 
-    def direction(self, k: mi.UInt32, sample: mi.Point2f) -> mi.Vector3f:
-        """The direction at position ``sample`` ∈ [0,1)² inside bin ``k`` (uniform in solid angle), kept
+    def sample(self, k: mi.UInt32, sample: mi.Point2f) -> mi.Vector3f:
+        """A direction drawn uniformly in bin ``k`` for ``sample`` ∈ [0,1)²: :meth:`direction`, kept
         :data:`EDGE_MARGIN` inside the bin's square so that :meth:`index` gives ``k`` back."""
+        margin = min(EDGE_MARGIN * self.resolution, 0.5)
+        return self.direction(k, dr.clip(sample, margin, 1 - margin))
+
+    def direction(self, k: mi.UInt32, sample: mi.Point2f) -> mi.Vector3f:
+        """The direction at position ``sample`` ∈ [0,1]² of bin ``k``'s square (uniform in solid angle)."""
         n = self.resolution
-        margin = min(EDGE_MARGIN * n, 0.5)
-        sample = dr.clip(sample, margin, 1 - margin)
         lower = k >= n * n
         local_index = k - dr.select(lower, n * n, 0)
         uv = (mi.Point2f(mi.Float(local_index % n), mi.Float(local_index // n)) + sample) / n

@@ -79,7 +79,7 @@ def _direction_from_cdf(bins, cdf: mi.Float, row: mi.UInt32, sampler: mi.Sampler
                         active: mi.Bool) -> tuple[mi.Vector3f, mi.UInt32]:
     """A bin drawn from one row of per-bin CDFs, then a uniform direction inside it: (world direction, bin)."""
     k = _invert_cdf(cdf, row, bins.count, sampler.next_1d(active), active)
-    return bins.direction(k, sampler.next_2d(active)), k
+    return bins.sample(k, sampler.next_2d(active)), k
 
 
 def _first_accepted(sampler, searching, propose, accepts, count: int) -> tuple[mi.Vector3f, mi.Bool, mi.UInt32]:
@@ -344,7 +344,7 @@ class GridGuide(Guide):
             bound = dr.gather(mi.Float, table.in_bin_bound, table.in_bin_flat(vertex.pair, k), searching)
 
             def propose(sampler, active):
-                return table.bins.direction(k, sampler.next_2d(active))
+                return table.bins.sample(k, sampler.next_2d(active))
 
             def accepts(sampler, candidate, active):
                 return sampler.next_1d(active) * bound < dr.dot(candidate, centre)
