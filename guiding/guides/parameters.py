@@ -31,10 +31,11 @@ PROFILE_TRAINING_PASSES = 2
 #: themselves cost (they differ in length and in where they go).
 PROFILE_BSDF_PATHS = "bsdf_paths"
 
-#: Least BSDF share of the rejection samplers (see :mod:`guiding.guides.grid`): it bounds hemi_rej's weight by 10·ρ
-#: (measured at door-ajar's vertices, results/bounce_weights.md: second moment 1.8·ρ², against 1.9 at 0.05 and 1.6
-#: at 0.2).
-MIN_BSDF_SHARE = 0.1
+#: Least BSDF share of the rejection samplers (see :mod:`guiding.guides.grid`): it bounds hemi_rej's weight by 5·ρ
+#: per bounce (measured at door-ajar's vertices, results/bounce_weights.md: second moment 1.6·ρ², against 1.8 at 0.1
+#: and 1.9 at 0.05). At 0.1 (10·ρ) the products of several such bounces were still heavy-tailed: on door-ajar one of
+#: 24 passes of sarsa-hemi_rej came out at 2.4× the mean, doubling the pass means' standard error.
+MIN_BSDF_SHARE = 0.2
 #: Floor of the exploration share ε of the grid policy. The paper's schedule alone drives ε to 1e-10 by 1000 spp;
 #: unexplored bins then get probabilities below float32 resolution in the CDFs, are never sampled, and the image is
 #: biased (measured: −20 % image mean on `cornell` with hemi_inv). With the floor every bin keeps ≥ ε_min/B.
