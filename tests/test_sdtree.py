@@ -397,6 +397,10 @@ def test_stree_splits_at_midpoints_cycling_axes():
     split_leaves = stree_locate(arrays, mi.Point3f(*[mi.Float(high[:, i]) for i in range(3)])).numpy()
     assert split_leaves[0] != split_leaves[1]
     assert (sources[split_leaves] == leaf[3]).all()     # both children inherit the parent's D-tree
+    # Whatever the threshold, a leaf of one vertex or fewer does not split: 100 vertices make at most 7 levels.
+    bounded = STree([0, 0, 0], [1, 1, 1])
+    bounded.refine([100.0], threshold=0.0)
+    assert bounded.n_leaves == 128 and max(bounded.depth) == 7
 
 
 def test_doubling_schedule():
