@@ -186,7 +186,7 @@ def threshold_table(scales: tuple[float, ...] = (0.0625, 0.125, 0.25), scene_nam
       spp: samples per pixel of every render (default 1024).
       seeds: render seeds (default 0, 1, 2).
       reference_spp: spp of the `path` reference at the first scale (default 131072); the others get the same
-        samples per image, ``reference_spp·(scales[0]/scale)²`` (at least 1024).
+        samples per image, ``reference_spp·(scales[0]/scale)²``.
       cache: folder of the cached references (default results).
       constants: the values of ``c`` (default :data:`THRESHOLD_CONSTANTS`).
     Returns (summary, runs) as DataFrames.
@@ -195,7 +195,7 @@ def threshold_table(scales: tuple[float, ...] = (0.0625, 0.125, 0.25), scene_nam
 
     records = []
     for scale in scales:
-        ref_spp = max(1024, int(round(reference_spp * (scales[0] / scale) ** 2)))
+        ref_spp = max(1, int(round(reference_spp * (scales[0] / scale) ** 2)))
         scene = load_scene(scene_name, scale)
         reference = reference_image(scene_name, scale, ref_spp, cache)
         resolution = "x".join(str(int(v)) for v in scene.sensors()[0].film().crop_size())
