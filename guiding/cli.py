@@ -1,5 +1,5 @@
-"""Command line: ``python -m guiding {render, reference, evaluate, bench, demo, validate, show-guide, scenes,
-methods}``.
+"""Command line: ``python -m guiding {render, reference, evaluate, bench, demo, validate, sdtree-baseline,
+show-guide, scenes, methods}``.
 
 Bad input ends with one line on stderr and a non-zero exit, before any output is written; an interrupted run
 (Ctrl-C: exit code 130) leaves no output files behind (they are written atomically, together, last of all).
@@ -96,9 +96,10 @@ def build_parser() -> argparse.ArgumentParser:
     budget.add_argument("--seconds", type=_positive_float, help="time budget in seconds")
     render.add_argument("--exclude-passes", type=int, default=0,
                         help="leading passes not counted against a seconds budget (default 0)")
-    render.add_argument("--combine", choices=["last", "inverse-variance"], default="last",
-                        help="final image of a guide with iterations (sdtree): the last iteration, or the last "
-                        "four weighted by their inverse variance (default last)")
+    render.add_argument("--combine", choices=["last", "automatic", "inverse-variance"], default=None,
+                        help="final image of a guide with iterations (sdtree): the last iteration, the last one "
+                        "with training stopped by the variance, or the last four weighted by their inverse variance "
+                        "(default: the method's own, inverse-variance for sdtree)")
     render.add_argument("--snapshots", action="store_true",
                         help="also write the image after every pass_spp*2^k spp as image_snapNNNNN.exr")
     render.add_argument("--memory-limit", type=_memory_size, default=None,
@@ -155,6 +156,26 @@ def build_parser() -> argparse.ArgumentParser:
     validate.add_argument("--out", default="results")
     validate.add_argument("--quick", action="store_true", help="smaller budgets (a smoke run)")
     _add_backend_options(validate)
+
+    baseline = commands.add_parser("sdtree-baseline", help="SD-tree baseline figures written to results/: equal-spp "
+                                   "MAE of its previous and present setups beside brdf, quadtree-grid and ours, and "
+                                   "the S-tree threshold at several image sizes")
+    baseline.add_argument("--out", default="results", help="output folder (default results; references are cached "
+                          "under OUT/sdtree_baseline/references)")
+    baseline.add_argument("--part", choices=["all", "equal-spp", "threshold"], default="all",
+                          help="which table to make (default all)")
+    baseline.add_argument("--scene", default="veach-ajar")
+    baseline.add_argument("--scale", type=_positive_float, default=0.0625,
+                          help="resolution scale of the equal-spp table (default 0.0625: 80x45)")
+    baseline.add_argument("--spp", type=_positive_int, default=1024, help="spp of every render (default 1024)")
+    baseline.add_argument("--seeds", default="0,1,2", help="comma-separated render seeds (default 0,1,2)")
+    baseline.add_argument("--reference-spp", type=_positive_int, default=131072,
+                          help="spp of the `path` reference of the equal-spp table and of the threshold study's first "
+                          "scale (default 131072)")
+    baseline.add_argument("--threshold-scales", default="0.0625,0.125,0.25",
+                          help="comma-separated scales of the threshold study (default 0.0625,0.125,0.25); their "
+                          "references have the same samples per image as the first's")
+    _add_backend_options(baseline)
 
     commands.add_parser("scenes", help="list the scenes on the search path")
     commands.add_parser("methods", help="list the method names")
@@ -220,14 +241,14 @@ def device_name(variant: str) -> str:
     return f"CPU: {platform.processor() or platform.machine()}"
 
 
-def _image_metadata(scene_name: str, args, method: str, integrator, budget, provenance: dict) -> dict:
+def _image_metadata(scene_name: str, args, method: str, integrator, budget, provenance: dict, combine: str) -> dict:
     """What every EXR file of a render carries in its header (imageio.write_exr; the spp are added per file): the
-    method and its guide's parameters, the render's parameters, seed, scene, variant, device and versions."""
+    method and its guide's parameters, the render's parameters (``combine``: its final-image mode), seed, scene,
+    variant, device and versions."""
     from .provenance import software_versions
 
     guide = getattr(integrator, "guide", None)
-    parameters = {"budget": asdict(budget), "max_depth": args.max_depth, "scale": args.scale,
-                  "combine": getattr(args, "combine", "last")}
+    parameters = {"budget": asdict(budget), "max_depth": args.max_depth, "scale": args.scale, "combine": combine}
     return {"method": method, "scene": scene_name, "seed": args.seed, "parameters": parameters,
             "guide": {k: v for k, v in (guide.stats() if guide is not None else {}).items()
                       if not isinstance(v, (dict, list))},
@@ -237,16 +258,17 @@ def _image_metadata(scene_name: str, args, method: str, integrator, budget, prov
 
 def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget, variant: str) -> dict:
     from . import guide_state, imageio, strict_json
-    from .render import SnapshotWriter, render
+    from .render import SnapshotWriter, render, resolve_combine
     from .scenes import find_scene, load_scene
 
     scene = load_scene(scene_name, args.scale, args.scene_dir)
     provenance = _provenance(variant, args.threads)
-    metadata = _image_metadata(scene_name, args, method, integrator, budget, provenance)
+    combine = resolve_combine(getattr(args, "combine", None), integrator)
+    metadata = _image_metadata(scene_name, args, method, integrator, budget, provenance, combine)
     snapshots = SnapshotWriter(out, metadata) if getattr(args, "snapshots", False) else None
     try:
         result = render(scene, integrator, budget, seed=args.seed, progress=False if args.quiet else None,
-                        combine=getattr(args, "combine", "last"), snapshot=snapshots)
+                        combine=combine, snapshot=snapshots)
     except BaseException:   # interrupted or failed: snapshots written so far are partial outputs
         for entry in snapshots.entries if snapshots is not None else []:
             (out / entry["file"]).unlink(missing_ok=True)
@@ -465,6 +487,49 @@ def _command_validate(args) -> None:
     print(learning.to_string(index=False))
 
 
+def _command_sdtree_baseline(args) -> None:
+    from .backend import set_variant
+    from .scenes import find_scene
+
+    find_scene(args.scene)
+    try:
+        seeds = tuple(int(v) for v in args.seeds.split(",") if v)
+        scales = tuple(float(v) for v in args.threshold_scales.split(",") if v)
+    except ValueError:
+        raise GuidingError(f"bad --seeds '{args.seeds}' or --threshold-scales '{args.threshold_scales}': "
+                           "comma-separated numbers expected") from None
+    if not seeds or not all(scale > 0 for scale in scales):
+        raise GuidingError("sdtree-baseline: give at least one seed, and scales > 0")
+    variant = set_variant(args.variant, args.threads)
+    out = _prepare_output_dir(args.out)
+    from .bench import write_table
+    from .sdtree_baseline import equal_spp_table, threshold_table
+
+    device = device_name(variant)
+    cache = out / "sdtree_baseline"
+    common = (f"--scene {args.scene} --spp {args.spp} --seeds {args.seeds}"
+              + (f" --variant {args.variant}" if args.variant != "auto" else "")
+              + (f" --threads {args.threads}" if args.threads else ""))
+    if args.part in ("all", "equal-spp"):
+        summary, runs = equal_spp_table(args.scene, args.scale, args.spp, seeds, args.reference_spp, cache)
+        command = (f"python -m guiding sdtree-baseline --part equal-spp {common} --scale {args.scale:g} "
+                   f"--reference-spp {args.reference_spp}")
+        write_table(summary, out / "sdtree_baseline", f"The SD-tree baseline at equal spp: {args.scene} at scale "
+                    f"{args.scale:g}, {args.spp} spp, seeds {args.seeds}, MAE against a {args.reference_spp}-spp "
+                    "`path` reference (`mae_vs_first`: relative to the first row)", device, command,
+                    sections={"Runs": runs})
+        print(summary.to_string(index=False))
+    if args.part in ("all", "threshold") and scales:
+        summary, runs = threshold_table(scales, args.scene, args.spp, seeds, args.reference_spp, cache)
+        command = (f"python -m guiding sdtree-baseline --part threshold {common} --reference-spp "
+                   f"{args.reference_spp} --threshold-scales " + ",".join(f"{scale:g}" for scale in scales))
+        write_table(summary, out / "sdtree_threshold", f"The S-tree threshold c·sqrt(paths / (4·1280·720)) at "
+                    f"several image sizes: `sdtree` on {args.scene}, {args.spp} spp, seeds {args.seeds}; "
+                    "`stree_leaves`: leaves of the final S-tree, `last_threshold`: the vertices a leaf needed to "
+                    "split at the last refinement", device, command, sections={"Runs": runs})
+        print(summary.to_string(index=False))
+
+
 def _command_scenes(args) -> None:
     from .scenes import available_scenes, search_path
 
@@ -481,6 +546,7 @@ def _command_methods(args) -> None:
 
 COMMANDS = {"render": _command_render, "reference": _command_reference, "evaluate": _command_evaluate,
             "bench": _command_bench, "validate": _command_validate, "demo": _command_demo,
+            "sdtree-baseline": _command_sdtree_baseline,
             "show-guide": _command_show_guide, "scenes": _command_scenes, "methods": _command_methods}
 
 

@@ -49,7 +49,9 @@ def _grid(**parameters) -> Method:
     return Method(".guides.grid", "GridGuide", GridParameters(**parameters))
 
 
-#: The paper's configurations (S = 8, D = 16), the baselines, and every rule × sampler. ``ours-uniform-proposals``
+#: The paper's configurations (S = 8, D = 16), the baselines, and every rule × sampler. ``sdtree`` is Tom94's
+#: SD-tree with Müller 2019's inverse-variance combination, ``sdtree-last`` the same with the 2017 paper's final image
+#: (its last iteration alone). ``ours-uniform-proposals``
 #: is ``ours`` with the paper's rejection loop (the same target, about five times the proposals; see GridGuide).
 #: ``{rule}-hemi_inv-pure`` is the paper's hemi_inv without the BSDF share of ours (heavy-tailed; not in the tables).
 #: ``ours-plus`` (beyond the paper, in progress): ``ours`` guiding every smooth reflecting BSDF, with a BSDF share of
@@ -57,6 +59,7 @@ def _grid(**parameters) -> Method:
 METHODS: dict[str, Method] = {
     "brdf": Method(".guides.bsdf", "BSDFGuide"),
     "sdtree": Method(".guides.sdtree", "SDTreeGuide", SDTreeParameters()),
+    "sdtree-last": Method(".guides.sdtree", "SDTreeGuide", SDTreeParameters(combine="last")),
     "quadtree-grid": Method(".guides.sdtree", "QuadtreeGridGuide", QuadtreeGridParameters()),
     "ours": _grid(rule="sarsa", sampler="hemi_rej_plus"),
     "ours-uniform-proposals": _grid(rule="sarsa", sampler="hemi_rej_plus", proposal="uniform"),

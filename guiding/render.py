@@ -4,9 +4,11 @@
 (the grid guide, BSDF sampling) has a single iteration, so the image is the mean over all passes, training passes
 included, as in the paper. A guide whose update reports ``iteration_done`` (:class:`~guiding.guides.base.UpdateResult`;
 the SD-tree's doubling schedule) closes an iteration there and the next pass starts a new image; the final image is
-then (``combine``)
+then (``combine``; by default the guide's own, :attr:`~guiding.guides.base.Guide.combine`: the SD-tree's is
+``"inverse-variance"``)
 
-* ``"last"``: the last iteration alone (Müller et al. 2017), or
+* ``"last"``: the last iteration alone (Müller et al. 2017),
+* ``"automatic"``: the last iteration alone, with training stopped by the variance (below), or
 * ``"inverse-variance"``: the mean of the last :data:`COMBINED_ITERATIONS` iterations weighted by the inverse of
   each one's estimated variance (Müller 2019, "Practical Path Guiding in Production"; the same number of
   iterations as his implementation). An iteration's variance is estimated from the spread of its pass images
@@ -17,6 +19,14 @@ then (``combine``)
 
 Every iteration's spp, time, hit rate, variance, weight and the guide's statistics at its end are in
 :attr:`RenderResult.iterations`.
+
+**Automatic budget** (``combine="automatic"``, Tom94's default ``sampleCombination``). After iteration ``k``, its
+variance is extrapolated to the end of the budget as if its distribution had rendered everything left when it
+started: ``E_k = V_k·S_k / R_k`` (:func:`extrapolated_variance`; ``V_k`` the variance of its image, ``S_k`` its spp
+and ``R_k`` the spp left at its start; under a seconds budget, its counted seconds and the seconds left). Once an
+iteration that started after :data:`AUTOMATIC_MIN_SPP` spp has ``E_k > E_{k−1}``, more training no longer pays for
+the budget it takes: training stops, and the guide (refined with that iteration's data) renders the rest of the
+budget into that iteration's image, as when a seconds budget stops training (below).
 
 **Training under a seconds budget.** At every iteration boundary, the time of the next iteration is estimated as
 its spp × the measured seconds per spp of the iteration that just ended (render and update, compilation excluded,
@@ -59,12 +69,13 @@ from tqdm import tqdm
 
 from .driver import PassDriver, pass_seed
 from .errors import GuidingError
+from .guides.parameters import COMBINE_AUTOMATIC, COMBINE_INVERSE_VARIANCE, COMBINE_LAST, COMBINE_MODES
 
-COMBINE_LAST = "last"
-COMBINE_INVERSE_VARIANCE = "inverse-variance"
-COMBINE_MODES = (COMBINE_LAST, COMBINE_INVERSE_VARIANCE)
 #: Iterations an inverse-variance combination weighs: the last four, as in Müller's implementation.
 COMBINED_ITERATIONS = 4
+#: The automatic budget trusts an iteration's variance only if it started after this many spp (Tom94's
+#: guided_path.cpp: "we only trust the variance if we drew enough samples for it to be a reliable estimate").
+AUTOMATIC_MIN_SPP = 256
 
 
 @dataclass
@@ -196,6 +207,13 @@ def iteration_variance(first: np.ndarray, second: np.ndarray, spp: int, passes: 
     return float(np.mean(per_sample / spp))
 
 
+def extrapolated_variance(variance: float | None, spent: float, left: float) -> float | None:
+    """The variance of the final image if the distribution of an iteration whose image has ``variance`` after
+    ``spent`` spp (or seconds) had rendered the ``left`` spp (seconds) left when it started: ``variance·spent /
+    left`` (the variance of a mean falls as 1/samples). None without a variance estimate."""
+    return None if variance is None else variance * spent / left
+
+
 def combine_iterations(images: list[np.ndarray], variances: list[float | None]) -> tuple[np.ndarray, list[float]]:
     """``(Σ w_k I_k, [w_k])``: iteration images weighted by the inverse of their variance, ``w_k ∝ 1/V_k``,
     normalised to sum to one. An image without a variance estimate gets weight 0; when none has one, the last
@@ -238,6 +256,10 @@ class _IterationImages:
         second = self.second.numpy()[..., :3].astype(np.float64)
         return first / self.spp, self.spp, iteration_variance(first, second, self.spp, self.passes)
 
+    def variance(self) -> float | None:
+        """The estimated variance of the current iteration's image (:func:`iteration_variance`)."""
+        return self._current()[2]
+
     def close(self, record: IterationStats) -> None:
         """End the current iteration: keep its image, fill in its variance; the next pass starts a new one."""
         image, _, record.variance = self._current()
@@ -250,7 +272,7 @@ class _IterationImages:
         items = [(record, image, record.spp, record.variance) for record, image in self.kept]
         if self.passes:
             items.append((None, *self._current()))
-        if self.combine == COMBINE_LAST:
+        if self.combine != COMBINE_INVERSE_VARIANCE:
             record, image, spp, _ = items[-1]
             return image, spp, [(record, 1.0)]
         items = items[-COMBINED_ITERATIONS:]
@@ -344,8 +366,18 @@ def next_iteration_fits(iteration: IterationStats, next_spp: int, remaining_seco
     return estimate <= remaining_seconds, estimate
 
 
+def resolve_combine(combine: str | None, integrator: mi.SamplingIntegrator) -> str:
+    """The final-image mode of a render: ``combine`` if given, else that of the integrator's guide (``last`` for
+    an integrator without one); a GuidingError names an unknown mode."""
+    guide = getattr(integrator, "guide", None)
+    combine = combine or (guide.combine if guide is not None else COMBINE_LAST)
+    if combine not in COMBINE_MODES:
+        raise GuidingError(f"unknown combination '{combine}' (known: {', '.join(COMBINE_MODES)})")
+    return combine
+
+
 def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, seed: int = 0,
-           progress: bool | None = None, sensor: int | mi.Sensor = 0, combine: str = COMBINE_LAST,
+           progress: bool | None = None, sensor: int | mi.Sensor = 0, combine: str | None = None,
            snapshot: Callable[[int, np.ndarray, float, int], None] | None = None,
            on_pass: Callable[[PassStats, np.ndarray], None] | None = None) -> RenderResult:
     """Render ``scene`` progressively with ``integrator`` (a ``guided_path`` integrator or any Mitsuba one).
@@ -359,15 +391,15 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
       progress: progress on stderr with an ETA: None (default) a bar on a terminal and a plain line every
         :data:`PROGRESS_LINE_SECONDS` elsewhere (e.g. a Snakemake log), True the bar, False nothing.
       sensor: the sensor to render, or its index.
-      combine: the final image of a guide with iterations: ``"last"`` or ``"inverse-variance"`` (module docstring).
+      combine: the final image of a guide with iterations: ``"last"``, ``"automatic"`` or ``"inverse-variance"``
+        (module docstring); None (default): the guide's own (:func:`resolve_combine`).
       snapshot: called as ``snapshot(spp_total, image, counted_seconds, spp_in_image)`` with the image the render
         would return now (float64), after each pass that completes ``pass_spp · 2^k`` spp and after the last
         pass (e.g. a :class:`SnapshotWriter`).
       on_pass: called as ``on_pass(stats, image)`` after every pass with its statistics and its own image
         ((H, W, 3) float64).
     """
-    if combine not in COMBINE_MODES:
-        raise GuidingError(f"unknown combination '{combine}' (known: {', '.join(COMBINE_MODES)})")
+    combine = resolve_combine(combine, integrator)
     driver = PassDriver(scene, integrator, sensor)
     driver.prepare(budget.spp)
     guide = driver.guide
@@ -379,6 +411,7 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
     display = _Progress(budget, progress)
     spp_total, counted = 0, 0.0
     snapshot_spp = None
+    last_extrapolated = math.inf     # the automatic budget's E_{k-1}
 
     def current_iteration() -> IterationStats:
         return _iteration_record(len(iterations), passes[len(passes) - images.passes:])
@@ -420,21 +453,34 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
             # --------------------- Schedule and bookkeeping (not timed) ----------------------
             if outcome.update.iteration_done:
                 ended = current_iteration()
-                fits = True
+                stop = None
                 if budget.seconds is not None and guide.records() and guide.iteration_spp() is not None:
                     next_spp, remaining = guide.iteration_spp(), budget.seconds - counted
                     fits, estimate = next_iteration_fits(ended, next_spp, remaining)
-                if fits:
+                    if not fits:
+                        stop = {"reason": "seconds budget: the next iteration would not fit",
+                                "next_iteration_spp": next_spp, "next_iteration_seconds_estimate": estimate,
+                                "remaining_seconds": remaining}
+                # (Also before the schedule's own final iteration: stopping there keeps this iteration's samples.)
+                if stop is None and combine == COMBINE_AUTOMATIC:
+                    if budget.spp is not None:
+                        spent, left = ended.spp, budget.spp - ended.spp_start
+                    else:
+                        spent, left = ended.seconds, budget.seconds - (counted - ended.seconds)
+                    extrapolated = extrapolated_variance(images.variance(), spent, left)
+                    if ended.spp_start > AUTOMATIC_MIN_SPP and extrapolated is not None \
+                            and extrapolated > last_extrapolated:
+                        stop = {"reason": "automatic budget: the extrapolated variance rose",
+                                "extrapolated_variance": extrapolated,
+                                "previous_extrapolated_variance": last_extrapolated}
+                    last_extrapolated = math.inf if extrapolated is None else extrapolated
+                if stop is None:
                     close_iteration(ended)
                 else:
                     # The iteration that just ended becomes the final one: the frozen guide (refined with its
                     # data) renders the rest of the budget into its image, so no sample is discarded.
                     guide.stop_training()
-                    training_stopped = {
-                        "spp": spp_total, "seconds": counted, "iteration": ended.index,
-                        "reason": "seconds budget: the next iteration would not fit",
-                        "next_iteration_spp": next_spp,
-                        "next_iteration_seconds_estimate": estimate, "remaining_seconds": remaining}
+                    training_stopped = {"spp": spp_total, "seconds": counted, "iteration": ended.index, **stop}
             if recorded and not guide.records() and training_stopped is None:
                 training_stopped = {"spp": spp_total, "seconds": counted,
                                     "reason": "the guide's schedule: its final iteration records nothing"}

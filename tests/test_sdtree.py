@@ -187,22 +187,101 @@ def test_bsdf_mixture_matches_density_on_a_diffuse_surface(bsdf_dict):
     assert checked == {"weight": True, "pdf": True}
 
 
-def test_delta_surfaces_and_empty_trees_use_the_bsdf_alone():
+def test_empty_dtrees_are_uniform_once_built():
+    """Tom94's DTree::sample and pdf: once the trees are built, a D-tree without energy is the uniform density on
+    the sphere, mixed with the BSDF like any D-tree."""
+    guide = _guide_with(Forest.empty(1))
+    guide._built = True
+    adapter = GuideAdapter(guide, position=(0.3, 0.6, 0.2), replay=True)
+    ok, messages = chi_square(adapter.sample_func, adapter.pdf_func, sample_dim=3, sample_count=400_000, res=64,
+                              ires=33)
+    assert ok, messages
+    up = mi.Vector3f(0, 0.6, 0.8)
+    assert adapter.pdf_func(up)[0] == pytest.approx(0.5 * 0.8 / np.pi + 0.5 / (4 * np.pi), rel=1e-5)
+
+
+@pytest.mark.parametrize("bsdf_dict", [{"type": "plastic"},
+                                       {"type": "blendbsdf", "weight": 0.4, "bsdf_0": {"type": "diffuse"},
+                                        "bsdf_1": {"type": "dielectric"}}], ids=["plastic", "diffuse+glass"])
+def test_smooth_part_of_a_bsdf_with_a_delta_lobe_is_guided(bsdf_dict):
+    """Tom94's sampleMat: a BSDF with a delta lobe beside a smooth one mixes its smooth part with the D-tree (the
+    density it reports, chi-square tested), and reaches its delta lobe by BSDF sampling alone, with the BSDF's
+    weight over the BSDF share. The test moves each delta sample to a uniform direction on the sphere (drawn from
+    the sample dimensions that the delta lobe leaves unused), so the density it checks is ``guide.pdf`` plus the
+    delta lobe's probability over 4π."""
+    rng = np.random.default_rng(9)
+    guide = _guide_with(nested_forest([random_tree(rng, 4, 0.6, zeros=0.2)]))
+    bsdf = mi.load_dict(bsdf_dict)
+    adapter = GuideAdapter(guide, position=(0.3, 0.6, 0.2), bsdf=bsdf, replay=True)
+    ctx = mi.BSDFContext()
+    checked = {}
+
+    def delta_probability():
+        """The BSDF share times the BSDF's own probability of its delta lobe (at this vertex's fixed ``wi``, by
+        stratified samples of the lobe choice: exact to 1/n, as the choice is a threshold on the first sample)."""
+        n = 1 << 16
+        si, ptr = adapter.vertex(n)
+        s1 = (dr.arange(mi.Float, n) + 0.5) / n
+        bs, _ = ptr.sample(ctx, si, s1, mi.Point2f(0.5, 0.5), dr.full(mi.Bool, True, n))
+        return guide.bsdf_fraction * float(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta).numpy().mean())
+
+    p_delta = delta_probability()
+    assert 0.02 < p_delta < 0.5     # both parts take a share the test sees
+
+    def sample_func(sample):
+        si, bs, weight = adapter.draw(sample)
+        delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        active = dr.full(mi.Bool, True, dr.width(sample))
+        ref_bs, ref_weight = mi.BSDFPtr(bsdf).sample(ctx, si, sample[0] / guide.bsdf_fraction,
+                                                     mi.Point2f(sample[1], sample[2]), active)
+        d = delta.numpy()
+        rgb = weight.numpy().T     # (lanes, 3)
+        checked["delta weight"] = np.allclose(rgb[d], ref_weight.numpy().T[d] / guide.bsdf_fraction)
+        checked["delta pdf"] = np.allclose(bs.pdf.numpy()[d], ref_bs.pdf.numpy()[d] * guide.bsdf_fraction)
+        value = mi.BSDFPtr(bsdf).eval(ctx, si, bs.wo, active)
+        pdf = guide.pdf(si, mi.BSDFPtr(bsdf), ctx, bs.wo, active)
+        smooth = (~delta & (pdf > 0)).numpy()
+        expected = (value / dr.maximum(pdf, 1e-30)).numpy().T
+        checked["smooth weight"] = np.isclose(rgb[smooth], expected[smooth], rtol=1e-4,
+                                              atol=1e-6).mean() > 0.9999
+        uniform = mi.warp.square_to_uniform_sphere(mi.Point2f(sample[1], sample[2]))
+        return dr.select(delta, uniform, si.to_world(bs.wo))
+
+    def pdf_func(wo):
+        return adapter.pdf_func(wo) + p_delta / (4 * np.pi)
+
+    ok, messages = chi_square(sample_func, pdf_func, sample_dim=3, sample_count=400_000, res=64, ires=33)
+    assert ok, messages
+    assert checked == {"delta weight": True, "delta pdf": True, "smooth weight": True}
+
+
+@pytest.mark.parametrize("case", ["pure delta", "empty, not built", "empty, built, no uniform",
+                                  "delta lobe, not guided"])
+def test_where_the_bsdf_is_sampled_alone(case):
+    """Purely delta BSDFs; a D-tree without energy before the trees are built (iteration 0) or without
+    ``uniform_empty_dtrees``; a BSDF with a delta lobe without ``guide_delta_mixtures``: BSDF sampling alone."""
     size = 1000
     ctx = mi.BSDFContext()
     rng = np.random.default_rng(8)
     sample = mi.Vector3f(*[mi.Float(rng.random(size).astype(np.float32)) for _ in range(3)])
     si = _diffuse_vertex(size)
     active = dr.full(mi.Bool, True, size)
-    for bsdf_dict, forest in [({"type": "conductor"}, nested_forest([random_tree(rng, 3, 0.5)])),
-                              ({"type": "diffuse"}, Forest.empty(1))]:
-        bsdf = mi.load_dict(bsdf_dict)
-        guide = _guide_with(forest)
-        bs, weight = guide.sample(None, ReplaySampler(sample), si, mi.BSDFPtr(bsdf), ctx, active)
-        ref_bs, ref_weight = bsdf.sample(ctx, si, sample[0], mi.Point2f(sample[1], sample[2]), active)
-        assert np.allclose(bs.wo.numpy(), ref_bs.wo.numpy())
-        assert np.allclose(bs.pdf.numpy(), ref_bs.pdf.numpy())
-        assert np.allclose(weight.numpy(), ref_weight.numpy())
+    energy = nested_forest([random_tree(rng, 3, 0.5)])
+    bsdf_dict, forest, guide, built = {
+        "pure delta": ({"type": "conductor"}, energy, SDTreeGuide(), True),
+        "empty, not built": ({"type": "diffuse"}, Forest.empty(1), SDTreeGuide(), False),
+        "empty, built, no uniform": ({"type": "diffuse"}, Forest.empty(1), SDTreeGuide(uniform_empty_dtrees=False),
+                                     True),
+        "delta lobe, not guided": ({"type": "plastic"}, energy, SDTreeGuide(guide_delta_mixtures=False), True),
+    }[case]
+    bsdf = mi.load_dict(bsdf_dict)
+    guide = _guide_with(forest, guide)
+    guide._built = built
+    bs, weight = guide.sample(None, ReplaySampler(sample), si, mi.BSDFPtr(bsdf), ctx, active)
+    ref_bs, ref_weight = bsdf.sample(ctx, si, sample[0], mi.Point2f(sample[1], sample[2]), active)
+    assert np.allclose(bs.wo.numpy(), ref_bs.wo.numpy())
+    assert np.allclose(bs.pdf.numpy(), ref_bs.pdf.numpy())
+    assert np.allclose(weight.numpy(), ref_weight.numpy())
 
 
 # ============================================================================================ refinement
@@ -318,6 +397,10 @@ def test_stree_splits_at_midpoints_cycling_axes():
     split_leaves = stree_locate(arrays, mi.Point3f(*[mi.Float(high[:, i]) for i in range(3)])).numpy()
     assert split_leaves[0] != split_leaves[1]
     assert (sources[split_leaves] == leaf[3]).all()     # both children inherit the parent's D-tree
+    # Whatever the threshold, a leaf of one vertex or fewer does not split: 100 vertices make at most 7 levels.
+    bounded = STree([0, 0, 0], [1, 1, 1])
+    bounded.refine([100.0], threshold=0.0)
+    assert bounded.n_leaves == 128 and max(bounded.depth) == 7
 
 
 def test_doubling_schedule():
@@ -330,6 +413,24 @@ def test_doubling_schedule():
     assert iteration_length(8, 5, 248) == (256, False)     # without a budget no iteration is the last
 
 
+def test_stree_threshold_grows_with_the_square_root_of_the_paths(cornell):
+    """Tom94's c·sqrt(spp/4) at 1280 × 720, and c·sqrt(paths / (4·1280·720)) at any size: 375·sqrt(spp) at
+    80 × 45; ``c_pixels`` set to the image's size gives the unscaled c·sqrt(spp/4)."""
+    from guiding.render import Budget, render
+
+    guide = SDTreeGuide()
+    assert guide.stree_threshold(1280 * 720 * 4) == pytest.approx(12000)
+    assert guide.stree_threshold(1280 * 720 * 64) == pytest.approx(12000 * 4)
+    assert guide.stree_threshold(80 * 45 * 16) == pytest.approx(375 * 4)
+    assert SDTreeGuide(c_pixels=80 * 45).stree_threshold(80 * 45 * 16) == pytest.approx(12000 * 2)
+    # In a render, the paths are those the iteration's passes traced (pixels × spp).
+    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=56, pass_spp=8), seed=2)
+    pixels = int(np.prod(cornell.sensors()[0].film().crop_size()))
+    for it in result.iterations[:2]:
+        assert it.guide["paths_recorded"] == pixels * it.spp
+        assert it.guide["stree_threshold"] == pytest.approx(12000 * np.sqrt(pixels * it.spp / (4 * 1280 * 720)))
+
+
 # ============================================================================================ rendering
 @pytest.fixture(scope="module")
 def door():
@@ -338,7 +439,7 @@ def door():
     return load_scene("door-ajar", scale=0.1)
 
 
-GUIDES = {"sdtree": lambda c: SDTreeGuide(c=c, base_spp=16), "quadtree-grid": lambda c: QuadtreeGridGuide()}
+GUIDES = {"sdtree": lambda: SDTreeGuide(base_spp=16), "quadtree-grid": QuadtreeGridGuide}
 DOOR_PASSES, CORNELL_PASSES, SPP = 56, 24, 32
 
 
@@ -355,7 +456,7 @@ def cornell_reference(cornell):
 
 @pytest.mark.parametrize("method", GUIDES)
 def test_guided_renders_match_mitsuba_path_on_door_ajar(door, door_reference, method):
-    guide = GUIDES[method](500)   # c scaled down with the image (32 x 24 pixels)
+    guide = GUIDES[method]()
     passes = DOOR_PASSES
     ours = pass_means(door, GuidedPathIntegrator(guide=guide), passes=passes, spp=SPP, seed=1)
     reference = door_reference
@@ -373,7 +474,7 @@ def test_guided_renders_match_mitsuba_path_on_door_ajar(door, door_reference, me
 @pytest.mark.parametrize("method", GUIDES)
 def test_guided_renders_match_mitsuba_path_on_cornell(cornell, cornell_reference, method):
     """A scene where guided passes are not firefly-ridden: a tighter check (standard error < 1 % of the mean)."""
-    ours = pass_means(cornell, GuidedPathIntegrator(guide=GUIDES[method](300)), passes=CORNELL_PASSES, spp=SPP,
+    ours = pass_means(cornell, GuidedPathIntegrator(guide=GUIDES[method]()), passes=CORNELL_PASSES, spp=SPP,
                       seed=1)
     reference = cornell_reference
     z = z_scores(ours, reference)
@@ -385,7 +486,7 @@ def test_guided_renders_match_mitsuba_path_on_cornell(cornell, cornell_reference
 def test_trained_dtrees_point_at_the_light(cornell, method):
     """After a few passes, the D-trees of floor points send most samples towards the ceiling light: recording
     put the energy where the light comes from (directions, S-tree leaves and the backward walk agree)."""
-    guide = GUIDES[method](300)
+    guide = GUIDES[method]()
     pass_means(cornell, GuidedPathIntegrator(guide=guide), passes=8, spp=16, seed=4)
     floor = np.array([[-0.7, 0.01, 0.6], [0.75, 0.01, -0.5], [-0.3, 0.01, 0.55], [0.3, 0.01, -0.5]])
     to_light = np.array([0, 1.98, 0]) - floor
@@ -406,8 +507,8 @@ def test_trained_dtrees_point_at_the_light(cornell, method):
 def test_progressive_render_statistics_and_one_kernel(cornell):
     from guiding.render import Budget, render
 
-    guide = SDTreeGuide(c=300, base_spp=8)
-    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128, pass_spp=8), seed=3)
+    guide = SDTreeGuide(base_spp=8)
+    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128, pass_spp=8), seed=3, combine="last")
     stats = [p.guide for p in result.passes]
     # The renderer hands the guide its 128-spp budget: iterations (0, 8), (8, 24), (24, 56) and a final (56, 128).
     assert [p.iteration_done for p in result.passes] == [True, False, True, False, False, False, True] + [False] * 9
@@ -424,7 +525,7 @@ def test_progressive_render_statistics_and_one_kernel(cornell):
 def test_budget_makes_the_last_iteration_run_to_the_end_without_learning(cornell):
     from guiding.render import Budget, render
 
-    guide = SDTreeGuide(c=300, base_spp=8, budget_spp=64)
+    guide = SDTreeGuide(base_spp=8, budget_spp=64)
     assert doubling_schedule(guide.base_spp, guide.budget_spp) == [(0, 8), (8, 24), (24, 64)]
     result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=64, pass_spp=8), seed=3)
     stats = [p.guide for p in result.passes]
@@ -441,8 +542,8 @@ def test_iterations_in_the_render_result(cornell):
     passes, and the structure of the trees each training iteration built."""
     from guiding.render import Budget, render
 
-    guide = SDTreeGuide(c=300, base_spp=8)
-    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128, pass_spp=8), seed=3)
+    guide = SDTreeGuide(base_spp=8)
+    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128, pass_spp=8), seed=3, combine="last")
     its = result.iterations
     assert [(it.spp_start, it.spp_end, it.passes) for it in its] == [(0, 8, 1), (8, 24, 2), (24, 56, 4), (56, 128, 9)]
     for it in its:
@@ -478,8 +579,9 @@ def test_seconds_budget_stops_training_when_the_next_iteration_would_not_fit(cor
     from guiding.render import Budget, render
 
     FakeClock(monkeypatch, cost_per_spp=1e-3)   # 1 ms per spp, and compilation free
-    guide = SDTreeGuide(c=300, base_spp=8)
-    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(seconds=seconds, pass_spp=8), seed=1)
+    guide = SDTreeGuide(base_spp=8)
+    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(seconds=seconds, pass_spp=8), seed=1,
+                    combine="last")
     assert result.training_stopped["spp"] == stop_spp
     assert result.training_stopped["seconds"] == pytest.approx(stop_spp * 1e-3)
     assert result.training_stopped["next_iteration_spp"] == stop_spp + 8
@@ -501,8 +603,8 @@ def test_seconds_budget_training_decisions_match_the_measured_times(cornell):
     from guiding.render import Budget, render
 
     budget = Budget(seconds=1.5, pass_spp=8)
-    guide = SDTreeGuide(c=300, base_spp=8)
-    result = render(cornell, GuidedPathIntegrator(guide=guide), budget, seed=2)
+    guide = SDTreeGuide(base_spp=8)
+    result = render(cornell, GuidedPathIntegrator(guide=guide), budget, seed=2, combine="last")
     counted, start, stop = 0.0, 0, None
     for i, p in enumerate(result.passes):
         counted += p.counted_seconds
@@ -547,7 +649,7 @@ def test_inverse_variance_image_is_the_weighted_mean_of_the_last_four_iterations
     from guiding.render import Budget, render
 
     records = []
-    guide = SDTreeGuide(c=300, base_spp=4)
+    guide = SDTreeGuide(base_spp=4)
     # Iterations of 4, 8, 16, 32, 64 and (to the end) 128 spp: passes 1, 2, 4, 8, 16, 32.
     result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=252, pass_spp=4), seed=6,
                     combine="inverse-variance",
@@ -574,7 +676,7 @@ def test_inverse_variance_combination_matches_mitsuba_path(cornell, cornell_refe
     renders = 24
     means = []
     for seed in range(renders):
-        result = render(cornell, GuidedPathIntegrator(guide=SDTreeGuide(c=300, base_spp=4)),
+        result = render(cornell, GuidedPathIntegrator(guide=SDTreeGuide(base_spp=4)),
                         Budget(spp=60, pass_spp=4), seed=100 + seed, combine="inverse-variance")
         assert sum(it.weight > 0 for it in result.iterations) == 3   # iterations of 8, 16 and 32 spp
         means.append(result.image.astype(np.float64).mean(axis=(0, 1)))
@@ -582,3 +684,89 @@ def test_inverse_variance_combination_matches_mitsuba_path(cornell, cornell_refe
     z = z_scores(means, cornell_reference)
     assert (z < Z_LIMIT).all(), f"z-scores {z}, means {means.mean(0)} vs {cornell_reference.mean(0)}"
     assert (means.std(axis=0, ddof=1) / renders ** 0.5 < 0.01 * cornell_reference.mean(axis=0)).all()
+
+
+def test_sdtree_combines_by_inverse_variance_unless_told(cornell):
+    """Müller 2019's combination is the `sdtree` method's final image; `sdtree-last` (and combine="last") is the
+    2017 paper's; a guide without iterations has one image whatever the mode."""
+    from guiding.methods import make_guide
+    from guiding.render import Budget, render
+
+    budget = Budget(spp=56, pass_spp=8)
+    result = render(cornell, GuidedPathIntegrator(guide=make_guide("sdtree")), budget, seed=5)
+    assert result.combine == "inverse-variance" and result.summary()["combine"] == "inverse-variance"
+    # iterations of 8, 16 and 32 spp: the first, a single pass, has no variance estimate and no weight
+    assert [it.weight > 0 for it in result.iterations] == [False, True, True]
+    last = render(cornell, GuidedPathIntegrator(guide=make_guide("sdtree-last")), budget, seed=5)
+    assert last.combine == "last" and [it.weight for it in last.iterations] == [0, 0, 1]
+    assert render(cornell, GuidedPathIntegrator(), Budget(spp=8)).combine == "last"
+
+
+# ===================================================================================== automatic budget
+def _constant_sample_variance(first, second, spp, passes):
+    """An iteration variance as if every sample had variance 1: 1/spp (None for one pass, as the estimate)."""
+    return None if passes < 2 else 1.0 / spp
+
+
+@pytest.mark.parametrize("kind", ["spp", "seconds"])
+def test_automatic_budget_stops_training_once_the_extrapolated_variance_rises(cornell, monkeypatch, kind):
+    """With a variance per sample that does not fall, each iteration's extrapolated variance (∝ 1/(spp or seconds
+    left)) rises: training stops after the first iteration whose predecessor had an estimate and that started
+    after AUTOMATIC_MIN_SPP (lowered to 0 here). Iterations of 8, 16, 32 spp: the first has one pass, no
+    estimate; the second sets E ∝ 1/248 (1/0.248 s); the third's 1/232 is larger: stop at 56 spp, and the rest
+    of the budget goes into the third iteration's image."""
+    import guiding.render as render_module
+    from guiding.render import Budget, render
+
+    monkeypatch.setattr(render_module, "AUTOMATIC_MIN_SPP", 0)
+    monkeypatch.setattr(render_module, "iteration_variance", _constant_sample_variance)
+    if kind == "spp":
+        budget = Budget(spp=256, pass_spp=8)
+    else:
+        FakeClock(monkeypatch, cost_per_spp=1e-3)
+        budget = Budget(seconds=0.256, pass_spp=8)
+    guide = SDTreeGuide(base_spp=8)
+    result = render(cornell, GuidedPathIntegrator(guide=guide), budget, seed=1, combine="automatic")
+    stopped = result.training_stopped
+    assert stopped["spp"] == 56 and stopped["reason"] == "automatic budget: the extrapolated variance rose"
+    # E = V·spent/left with V = 1/spp: 1/(spp left), or (1 ms per spp) 1e-3/(seconds left)
+    cost, left = {"spp": (1.0, (248, 232)), "seconds": (1e-3, (0.248, 0.232))}[kind]
+    assert stopped["previous_extrapolated_variance"] == pytest.approx(cost / left[0], rel=1e-6)
+    assert stopped["extrapolated_variance"] == pytest.approx(cost / left[1], rel=1e-6)
+    assert not guide.records() and result.spp == 256
+    assert [(it.spp_start, it.spp_end) for it in result.iterations] == [(0, 8), (8, 24), (24, 256)]
+    assert result.spp_in_image == 232 and result.iterations[-1].weight == 1
+
+
+def test_automatic_budget_waits_for_a_reliable_variance(cornell, monkeypatch):
+    """Tom94's guard: iterations that started before AUTOMATIC_MIN_SPP (256) spp never stop training, however
+    their variance goes; the guide's own schedule ends it."""
+    import guiding.render as render_module
+    from guiding.render import Budget, render
+
+    monkeypatch.setattr(render_module, "iteration_variance", _constant_sample_variance)
+    result = render(cornell, GuidedPathIntegrator(guide=SDTreeGuide(base_spp=8)), Budget(spp=256, pass_spp=8),
+                    seed=1, combine="automatic")
+    assert result.training_stopped["reason"] == "the guide's schedule: its final iteration records nothing"
+    assert [(it.spp_start, it.spp_end) for it in result.iterations][-1] == (120, 256)
+
+
+def test_automatic_budget_decisions_match_the_measured_variances(cornell, monkeypatch):
+    """Real variances: every iteration boundary's decision, recomputed from the iterations' records (E_k =
+    V_k·S_k / spp left at its start, against E_{k-1})."""
+    import guiding.render as render_module
+    from guiding.render import Budget, extrapolated_variance, render
+
+    monkeypatch.setattr(render_module, "AUTOMATIC_MIN_SPP", 0)
+    budget = Budget(spp=504, pass_spp=8)
+    result = render(cornell, GuidedPathIntegrator(guide=SDTreeGuide(base_spp=8)), budget, seed=4,
+                    combine="automatic")
+    stopped = result.training_stopped
+    previous = np.inf
+    for it in result.iterations[:-1]:     # every closed training iteration let training go on
+        e = extrapolated_variance(it.variance, it.spp, budget.spp - it.spp_start)
+        assert e is None or e <= previous
+        previous = np.inf if e is None else e
+    if stopped["reason"].startswith("automatic"):
+        assert stopped["extrapolated_variance"] > previous == pytest.approx(stopped["previous_extrapolated_variance"])
+        assert stopped["spp"] < result.iterations[-1].spp_end == budget.spp

@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import mitsuba as mi
 
+from .parameters import COMBINE_LAST
+
 
 @dataclass
 class NoPathState:
@@ -40,6 +42,10 @@ class Guide:
 
     #: Short method name, as used on the command line and in tables.
     name = "guide"
+    #: The final image a renderer makes of this guide's iterations unless told otherwise (``combine`` of
+    #: :func:`guiding.render.render`; one of :data:`~guiding.guides.parameters.COMBINE_MODES`). A guide without
+    #: iterations has one, which every mode returns.
+    combine = COMBINE_LAST
 
     # ---------------------------------------------------------------- host side
     def prepare(self, scene: mi.Scene) -> None:

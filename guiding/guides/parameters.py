@@ -36,6 +36,22 @@ PROFILE_BSDF_PATHS = "bsdf_paths"
 #: and 1.9 at 0.05). At 0.1 (10·ρ) the products of several such bounces were still heavy-tailed: on door-ajar one of
 #: 24 passes of sarsa-hemi_rej came out at 2.4× the mean, doubling the pass means' standard error.
 MIN_BSDF_SHARE = 0.2
+#: How a renderer makes the final image of a guide whose learning runs in iterations (the SD-tree's doubling
+#: schedule; :mod:`guiding.render`): ``last``, the last iteration alone (Müller et al. 2017's paper); ``automatic``,
+#: the last iteration alone, training stopped early once the variance extrapolated to the end of the budget stops
+#: falling (Tom94's ``sampleCombination="automatic"``, the default of his guided_path.cpp); ``inverse-variance``,
+#: the last four iterations weighted by the inverse of their variance (Müller 2019, his "improved" preset).
+COMBINE_LAST = "last"
+COMBINE_AUTOMATIC = "automatic"
+COMBINE_INVERSE_VARIANCE = "inverse-variance"
+COMBINE_MODES = (COMBINE_LAST, COMBINE_AUTOMATIC, COMBINE_INVERSE_VARIANCE)
+
+#: The image size Müller et al.'s S-tree constant c = 12000 was tuned for (1280 × 720 pixels), and the spp its
+#: threshold counts in: Tom94's guided_path.cpp splits after iteration k of 2^k passes of ``sppPerPass`` spp at
+#: ``c·sqrt(2^k·sppPerPass/4)`` vertices, i.e. ``c·sqrt(spp_k/4)``, in units of his default pass of 4 spp.
+PAPER_PIXELS = 1280 * 720
+PAPER_SPP_UNIT = 4
+
 #: Floor of the exploration share ε of the grid policy. The paper's schedule alone drives ε to 1e-10 by 1000 spp;
 #: unexplored bins then get probabilities below float32 resolution in the CDFs, are never sampled, and the image is
 #: biased (measured: −20 % image mean on `cornell` with hemi_inv). With the floor every bin keeps ≥ ε_min/B.
@@ -130,19 +146,28 @@ class GridParameters:
 
 @dataclass(frozen=True)
 class TreeParameters:
-    """What the tree guides share: their D-trees and the BSDF share of their mixture.
+    """What the tree guides share: their D-trees and the mixture they sample.
 
     Parameters:
       rho: D-tree subdivision share: a leaf holding more than ``rho`` of its tree's energy splits (default 0.01).
       dtree_max_depth: deepest D-tree level (default 20).
       bsdf_fraction: BSDF share of the one-sample mixture with the D-tree (default 0.5, as Müller et al.).
       max_nodes: cap on the nodes of one D-tree (default None: no cap).
+      uniform_empty_dtrees: a D-tree that holds no energy samples the sphere uniformly, still mixed with the BSDF,
+        once the guide has built its trees (Tom94's ``DTree::sample`` and ``pdf``); False: such a vertex samples
+        the BSDF alone (default False; the SD-tree's default is True).
+      guide_delta_mixtures: a BSDF with a delta lobe beside a smooth one is guided: its smooth part is mixed with
+        the D-tree, its delta lobe reached by BSDF sampling alone (Tom94's ``sampleMat``); False: every BSDF with a
+        delta lobe samples the BSDF alone (default False; the SD-tree's default is True). Purely delta BSDFs are
+        never guided.
     """
 
     rho: float = 0.01
     dtree_max_depth: int = 20
     bsdf_fraction: float = 0.5
     max_nodes: int | None = None
+    uniform_empty_dtrees: bool = False
+    guide_delta_mixtures: bool = False
 
     def __post_init__(self):
         _check(0 < self.rho <= 1, f"rho must be in (0, 1], got {self.rho}")
@@ -153,25 +178,40 @@ class TreeParameters:
 
 @dataclass(frozen=True)
 class SDTreeParameters(TreeParameters):
-    """Müller et al. 2017's SD-tree (:class:`~guiding.guides.sdtree.SDTreeGuide`): the fields of
-    :class:`TreeParameters`, and
+    """Müller et al. 2017's SD-tree (:class:`~guiding.guides.sdtree.SDTreeGuide`) as Tom94's guided_path.cpp
+    implements it: the fields of :class:`TreeParameters` (with ``uniform_empty_dtrees`` and
+    ``guide_delta_mixtures`` on, as there), and
 
     Parameters:
-      c: S-tree split constant: a leaf splits when iteration ``k`` recorded more than ``c·sqrt(spp_k)`` vertices in
-        it (default 12000).
+      c: S-tree split constant (default 12000, Müller's, for ``c_pixels``).
+      c_pixels: the image size ``c`` is meant for (default :data:`PAPER_PIXELS`, 1280 × 720). A leaf splits when
+        the iteration recorded more than ``c·sqrt(paths / (PAPER_SPP_UNIT·c_pixels))`` vertices in it, ``paths``
+        the paths the iteration traced (pixels × spp): Tom94's ``c·sqrt(spp/4)`` at 1280 × 720, and at any size a
+        threshold that grows as the square root of the samples, so that the leaves, and the vertices each leaf
+        learns from, grow alike (``c`` ∝ sqrt(pixels) at a given spp). Set ``c_pixels`` to the image's pixel count
+        for the unscaled ``c·sqrt(spp/4)``.
       base_spp: spp of iteration 0 (default 8, one default pass); iteration ``k`` spans ``base_spp·2^k`` spp.
       budget_spp: the render's spp budget, if known (the renderer sets it): the last iteration then runs to the
         end of the budget and records nothing.
+      combine: the final image a renderer makes of the iterations, one of :data:`COMBINE_MODES` (default
+        ``inverse-variance``, Müller 2019's improved preset; ``last`` is the 2017 paper's).
     """
 
+    uniform_empty_dtrees: bool = True
+    guide_delta_mixtures: bool = True
     c: float = 12000.0
+    c_pixels: int = PAPER_PIXELS
     base_spp: int = 8
     budget_spp: int | None = None
+    combine: str = COMBINE_INVERSE_VARIANCE
 
     def __post_init__(self):
         super().__post_init__()
         _check(self.c > 0, f"c must be > 0, got {self.c}")
+        _check(self.c_pixels >= 1, f"c_pixels must be >= 1, got {self.c_pixels}")
         _check(self.base_spp >= 1, f"base_spp must be >= 1, got {self.base_spp}")
+        _check(self.combine in COMBINE_MODES,
+               f"unknown combination '{self.combine}' (choose from {', '.join(COMBINE_MODES)})")
 
 
 @dataclass(frozen=True)

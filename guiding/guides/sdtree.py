@@ -4,7 +4,8 @@ Two guides share the D-tree code (:mod:`guiding.guides.dtree`):
 
 * :class:`SDTreeGuide` (method ``sdtree``): one D-tree per leaf of a binary spatial tree (S-tree,
   :mod:`guiding.guides.stree`) over the scene's bounding box (made cubic, as in Müller's code), both refined after
-  each iteration of a doubling schedule from the data of that iteration alone.
+  each iteration of a doubling schedule from the data of that iteration alone. Its defaults are those of Tom94's
+  guided_path.cpp, with the S-tree threshold scaled to the image (:class:`~guiding.guides.parameters.SDTreeParameters`).
 * :class:`QuadtreeGridGuide` (method ``quadtree-grid``): one D-tree per cell of a uniform ``S³`` grid, split-only,
   energies accumulated over the whole render and the trees refreshed after every pass (the "Quadtree" column of
   Kim & Kim 2021).
@@ -31,7 +32,7 @@ import numpy as np
 from .base import Guide, NoPathState, UpdateResult
 from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
 from .grid_cells import GridCells
-from .parameters import QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
+from .parameters import PAPER_SPP_UNIT, QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
 from .stree import STree, iteration_length, stree_locate
 from .vertex_log import NO_RECORD, VertexLog, walk_backward
 
@@ -45,7 +46,9 @@ class _TreeGuide(Guide):
     """What the SD-tree and the quadtree grid share: the D-tree mixture sampler and Monte Carlo recording.
 
     Subclasses provide ``_locate(p, active)`` (the D-tree index of a position), ``self._sampling`` and
-    ``self._recording`` (:class:`DeviceForest`), and their update rule.
+    ``self._recording`` (:class:`DeviceForest`), and their update rule; they set ``self._built`` once their trees
+    have been built from recorded data (from then on, with ``uniform_empty_dtrees``, a D-tree without energy is
+    sampled, uniformly).
     """
 
     def __init__(self, parameters: TreeParameters, name: str | None):
@@ -55,7 +58,11 @@ class _TreeGuide(Guide):
         self.rho = parameters.rho
         self.dtree_max_depth = parameters.dtree_max_depth
         self.max_nodes = parameters.max_nodes
+        self.uniform_empty_dtrees = parameters.uniform_empty_dtrees
+        self.guide_delta_mixtures = parameters.guide_delta_mixtures
+        self._built = False
         self._log: VertexLog | None = None               # how the paths of the pass log their vertices
+        self._pass_paths = 0                             # paths recorded since the last update
         self._sampling: DeviceForest | None = None
         self._recording: DeviceForest | None = None
         self._energy_acc = None
@@ -73,15 +80,25 @@ class _TreeGuide(Guide):
         if not self.records():
             return NoPathState()
         self._log = VertexLog(max_depth, with_pdf=True)
+        self._pass_paths += size
         return self._log.new_paths()
 
     def guided_mask(self, tree, bsdf: mi.BSDFPtr, active):
-        """Lanes that mix in the D-tree: not a delta BSDF, and a D-tree that has seen energy."""
-        delta = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
-        return active & ~delta & dr.gather(mi.Bool, self._sampling.has_energy, tree, active)
+        """Lanes that mix in the D-tree: a BSDF with a smooth lobe (without ``guide_delta_mixtures``: a BSDF
+        without any delta lobe), and a D-tree that has seen energy (with ``uniform_empty_dtrees``, once the trees
+        are built, any D-tree: one without energy is uniform, its quadrant probabilities 1/4 each)."""
+        flags = bsdf.flags()
+        if self.guide_delta_mixtures:
+            guidable = mi.has_flag(flags, mi.BSDFFlags.Smooth)
+        else:
+            guidable = ~mi.has_flag(flags, mi.BSDFFlags.Delta)
+        # Opaque: the kernel takes the flag as a parameter, so the first build does not recompile the render.
+        empty_guided = dr.opaque(mi.Bool, self.uniform_empty_dtrees and self._built)
+        return active & guidable & (dr.gather(mi.Bool, self._sampling.has_energy, tree, active) | empty_guided)
 
     def pdf(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, wo, active=True):
-        """The density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si``."""
+        """The density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si`` (of its
+        smooth part: a delta lobe, which ``bsdf.pdf`` leaves out too, adds a point mass)."""
         active = mi.Bool(active)
         tree = self._locate(si.p, active)
         guided = self.guided_mask(tree, bsdf, active)
@@ -99,6 +116,8 @@ class _TreeGuide(Guide):
         s2 = sampler.next_2d(active)
         use_bsdf = s1 < frac
         bs, bsdf_weight = bsdf.sample(bsdf_ctx, si, dr.minimum(s1 / frac, ONE_MINUS_EPS), s2, active & use_bsdf)
+        # Only BSDF sampling reaches a delta lobe: its weight is the BSDF's over the BSDF share (Tom94's sampleMat).
+        delta = guided & use_bsdf & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
         use_tree = guided & ~use_bsdf
         bsdf_dir = si.to_world(bs.wo)
         # One descent of the D-tree: the direction it draws in the lanes that sample it, and the density of the
@@ -113,11 +132,11 @@ class _TreeGuide(Guide):
         mix_weight = dr.select(p_mix > 0, value / p_mix, 0)
 
         bs.wo = dr.select(use_tree, wo, bs.wo)
-        bs.pdf = dr.select(guided, p_mix, bs.pdf)
+        bs.pdf = dr.select(delta, self.bsdf_fraction * bs.pdf, dr.select(guided, p_mix, bs.pdf))
         bs.eta = dr.select(use_tree, 1.0, bs.eta)
         bs.sampled_type = dr.select(use_tree, mi.UInt32(+mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
         bs.sampled_component = dr.select(use_tree, mi.UInt32(0), bs.sampled_component)
-        weight = dr.select(guided, mix_weight, bsdf_weight)
+        weight = dr.select(delta, bsdf_weight / self.bsdf_fraction, dr.select(guided, mix_weight, bsdf_weight))
         return bs, weight
 
     def record(self, state, si, emitted, bs, weight, continues, active):
@@ -183,15 +202,16 @@ class SDTreeGuide(_TreeGuide):
     """Müller et al. 2017's SD-tree (see the module docstring).
 
     Parameters:
-      parameters: :class:`~guiding.guides.parameters.SDTreeParameters` (``c``, ``rho``, ``dtree_max_depth``,
-        ``bsdf_fraction``, ``max_nodes``, ``base_spp``, ``budget_spp``; each documented there), default
-        ``SDTreeParameters()``.
+      parameters: :class:`~guiding.guides.parameters.SDTreeParameters` (``c``, ``c_pixels``, ``rho``,
+        ``dtree_max_depth``, ``bsdf_fraction``, ``max_nodes``, ``uniform_empty_dtrees``, ``guide_delta_mixtures``,
+        ``base_spp``, ``budget_spp``, ``combine``; each documented there), default ``SDTreeParameters()``.
       name: the method name shown in tables (default ``sdtree``).
       overrides: parameters changed from ``parameters`` (``SDTreeGuide(c=1000)``).
 
-    S-tree threshold: a leaf splits when the vertices recorded in it during iteration ``k`` exceed
-    ``c·sqrt(spp_k)``, ``spp_k = base_spp·2^k`` the spp of that iteration. This is the paper's ``c·sqrt(2^k)``
-    with its iterations of ``2^k`` spp; here iteration 0 already has ``base_spp`` spp.
+    S-tree threshold (:meth:`stree_threshold`): a leaf splits when the vertices recorded in it during an iteration
+    exceed ``c·sqrt(paths / (4·c_pixels))``, ``paths`` the paths that iteration traced (counted from its vertex
+    logs: pixels × spp). At 1280 × 720 this is Tom94's ``c·sqrt(spp/4)``; the paper's ``c·sqrt(2^k)`` had
+    iterations of 2^k of his 4-spp passes. Here iteration 0 already has ``base_spp`` spp.
 
     Schedule: :meth:`update` is called after every pass; it refines when the spp done reach the end of the
     current iteration. ``update`` reports ``iteration_done`` for the pass that closed an iteration: a renderer that
@@ -205,8 +225,10 @@ class SDTreeGuide(_TreeGuide):
     def __init__(self, parameters: SDTreeParameters | None = None, name: str | None = None, **overrides):
         super().__init__(with_overrides(parameters or SDTreeParameters(), overrides), name)
         self.c = self.parameters.c
+        self.c_pixels = self.parameters.c_pixels
         self.base_spp = self.parameters.base_spp
         self.budget_spp = self.parameters.budget_spp
+        self.combine = self.parameters.combine
         self._recording_on = True
 
     # ------------------------------------------------------------------------------------ schedule
@@ -219,6 +241,14 @@ class SDTreeGuide(_TreeGuide):
                                                            self.budget_spp)
         self.iteration_start_spp = spp_start
         self.iteration_end_spp = spp_start + max(length, 1)
+        self._iteration_paths = 0      # paths traced in the iteration's recording passes (the S-tree threshold)
+
+    def stree_threshold(self, paths: int) -> float:
+        """Vertices an S-tree leaf must have recorded, in an iteration that traced ``paths`` paths, to split:
+        ``c·sqrt(paths / (PAPER_SPP_UNIT·c_pixels))``. Growing as the square root of the samples, it lets the
+        number of leaves and the vertices per leaf grow alike, whatever the image size (c ∝ sqrt(pixels) at a
+        given spp): README, "SD-tree baseline", for the measurements at three image sizes."""
+        return self.c * math.sqrt(paths / (PAPER_SPP_UNIT * self.c_pixels))
 
     def iteration_spp(self) -> int:
         """Length in spp of the iteration the next pass belongs to (a renderer under a seconds budget checks
@@ -245,6 +275,7 @@ class SDTreeGuide(_TreeGuide):
         self._recording = DeviceForest(self._recording_host)
         self._reset_accumulators()
         self._recording_on = True
+        self._built = False
         self.iteration = 0
         self._start_iteration(0)
         self._last_refine = {}
@@ -262,6 +293,8 @@ class SDTreeGuide(_TreeGuide):
         the last iteration restarts its accumulation there)."""
         pass_iteration = self.iteration
         recorded = self.records()
+        self._iteration_paths += self._pass_paths
+        self._pass_paths = 0
         stats = {"refine_seconds": 0.0}
         iteration_done = recorded and not self.is_final_iteration and spp_done >= self.iteration_end_spp
         if iteration_done:
@@ -279,8 +312,7 @@ class SDTreeGuide(_TreeGuide):
         energy, counts = self._pull()
         built = self._recording_host
         built.deposit(energy)
-        spp_k = self.iteration_end_spp - self.iteration_start_spp
-        threshold = self.c * math.sqrt(spp_k)
+        threshold = self.stree_threshold(self._iteration_paths)
         sources = self.stree.refine(counts, threshold)
         self._sampling_host = built.rebuild(sources, SPLIT_COPY)
         self._recording_host = built.rebuild(sources, SPLIT_REFINE, self.rho, self.dtree_max_depth,
@@ -290,9 +322,11 @@ class SDTreeGuide(_TreeGuide):
         self._sampling = DeviceForest(self._sampling_host)
         self._recording = DeviceForest(self._recording_host)
         self._reset_accumulators()
+        self._built = True
         dr.sync_thread()
         self._last_refine = {"refine_seconds": time.perf_counter() - start, "refine_host_seconds": host_seconds,
-                             "stree_threshold": threshold, "vertices_recorded": float(counts.sum()),
+                             "stree_threshold": threshold, "paths_recorded": self._iteration_paths,
+                             "vertices_recorded": float(counts.sum()),
                              "energy_recorded": float(energy.sum()), **self.sanitised}
         return dict(self._last_refine)
 
@@ -307,8 +341,10 @@ class SDTreeGuide(_TreeGuide):
         return stats
 
     def stats(self) -> dict:
-        out = {"method": self.name, "c": self.c, "rho": self.rho, "dtree_max_depth": self.dtree_max_depth,
-               "bsdf_fraction": self.bsdf_fraction, "base_spp": self.base_spp, "budget_spp": self.budget_spp}
+        out = {"method": self.name, "c": self.c, "c_pixels": self.c_pixels, "rho": self.rho,
+               "dtree_max_depth": self.dtree_max_depth, "bsdf_fraction": self.bsdf_fraction,
+               "uniform_empty_dtrees": self.uniform_empty_dtrees, "guide_delta_mixtures": self.guide_delta_mixtures,
+               "base_spp": self.base_spp, "budget_spp": self.budget_spp, "combine": self.combine}
         if hasattr(self, "stree"):
             out.update(self._structure_stats())
             out["last_refine"] = self._last_refine
@@ -343,6 +379,7 @@ class QuadtreeGridGuide(_TreeGuide):
                                                keep_energy=True, max_nodes=self.max_nodes)
         self._sampling = self._recording = DeviceForest(self._forest)
         self._reset_accumulators()
+        self._built = False
 
     def _locate(self, p, active):
         return self._cells.cell(p)
@@ -356,6 +393,7 @@ class QuadtreeGridGuide(_TreeGuide):
         host_seconds = time.perf_counter() - start
         self._sampling = self._recording = DeviceForest(self._forest)
         self._reset_accumulators()
+        self._built = True
         dr.sync_thread()
         stats = {"refine_seconds": time.perf_counter() - start,
                  "refine_host_seconds": host_seconds, "energy_recorded": float(energy.sum()), **self.sanitised}
@@ -369,7 +407,8 @@ class QuadtreeGridGuide(_TreeGuide):
 
     def stats(self) -> dict:
         out = {"method": self.name, "S": self.S, "rho": self.rho, "dtree_max_depth": self.dtree_max_depth,
-               "bsdf_fraction": self.bsdf_fraction}
+               "bsdf_fraction": self.bsdf_fraction, "uniform_empty_dtrees": self.uniform_empty_dtrees,
+               "guide_delta_mixtures": self.guide_delta_mixtures}
         if hasattr(self, "_forest"):
             out.update(self._structure_stats())
         return out

@@ -52,8 +52,11 @@ class STree:
     def refine(self, counts, threshold: float) -> np.ndarray:
         """Split every leaf whose vertex count (``counts[tree]``) exceeds ``threshold``, at its midpoint; the two
         children inherit the D-tree and half the count each and split again while that half still exceeds it.
-        Leaves are renumbered in node order; returns, for each new leaf, the index of the D-tree it inherits."""
+        A leaf of at most one vertex never splits, whatever the threshold (its children would hold half a vertex),
+        so the tree stays within twice the vertices recorded. Leaves are renumbered in node order; returns, for each
+        new leaf, the index of the D-tree it inherits."""
         counts = np.asarray(counts, dtype=np.float64)
+        threshold = max(threshold, 1.0)
         work = [(n, counts[self.tree[n]]) for n in self.leaves()]
         while work:
             node, count = work.pop()

@@ -1,0 +1,29 @@
+"""`python -m guiding sdtree-baseline`: both tables, with the command that made them, from a tiny run."""
+
+import pandas as pd
+import pytest
+
+from guiding.cli import main
+from guiding.sdtree_baseline import THRESHOLD_CONSTANTS, VARIANTS
+
+
+def test_sdtree_baseline_command_writes_both_tables(tmp_path):
+    assert main(["sdtree-baseline", "--out", str(tmp_path), "--scene", "cornell", "--scale", "0.05", "--spp", "24",
+                 "--seeds", "0,1", "--reference-spp", "16", "--threshold-scales", "0.05,0.07",
+                 "--variant", "llvm_ad_rgb"]) == 0
+    summary = pd.read_csv(tmp_path / "sdtree_baseline.csv")
+    assert list(summary["variant"]) == [v.label for v in VARIANTS] and (summary["seeds"] == 2).all()
+    assert summary["mae"].notna().all() and summary["mae_vs_first"].iloc[0] == 0
+    previous = summary.set_index("variant").loc["sdtree, previous setup"]
+    # its one refinement, after the first iteration (8 spp), at the previous threshold 12000·sqrt(8) (CSV: 4 digits)
+    assert "combine=last" in previous["overrides"]
+    assert previous["last_threshold"] == pytest.approx(12000 * 8 ** 0.5, rel=1e-3)
+    threshold = pd.read_csv(tmp_path / "sdtree_threshold.csv")
+    assert len(threshold) == 2 * len(THRESHOLD_CONSTANTS) and threshold["resolution"].nunique() == 2
+    # the references of the study have the same samples per image at both sizes: 16 spp at 12 x 12, 8 at 17 x 17
+    assert list(threshold["reference_spp"].unique()) == [16, 8]
+    for name in ("sdtree_baseline.md", "sdtree_threshold.md"):
+        text = (tmp_path / name).read_text()
+        assert "python -m guiding sdtree-baseline --part" in text and "## Runs" in text
+    # the references are cached in the harness's layout
+    assert (tmp_path / "sdtree_baseline" / "references" / "cornell" / "x0.05-spp16" / "image.exr").exists()
