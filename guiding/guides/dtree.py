@@ -218,9 +218,16 @@ class Forest:
 #  D-trees on the device
 # ===================================================================================================================
 def padded(a: np.ndarray, minimum: int = 2) -> np.ndarray:
-    """``a`` with zeros appended up to ``minimum`` entries, for uploading as a device table (D-trees, S-tree):
-    arrays of one element may be traced differently from larger ones, so every table keeps >= 2 entries."""
-    return a if len(a) >= minimum else np.concatenate([a, np.zeros(minimum - len(a), dtype=a.dtype)])
+    """``a`` with zeros appended up to ``minimum`` entries, in 64-byte aligned memory, for uploading as a device
+    table (D-trees, S-tree). Arrays of one element may be traced differently from larger ones, so every table keeps
+    >= 2 entries; and the CPU backend uses a NumPy array's memory in place, where a table that is not 64-byte aligned
+    gets scalar instead of packet gathers: a different kernel, compiled again."""
+    a = a if len(a) >= minimum else np.concatenate([a, np.zeros(minimum - len(a), dtype=a.dtype)])
+    buffer = np.empty(a.nbytes + 64, dtype=np.uint8)
+    offset = -buffer.ctypes.data % 64
+    out = buffer[offset:offset + a.nbytes].view(a.dtype)
+    out[:] = a
+    return out
 
 
 def _prev_float(x):
