@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .guides.parameters import PAPER_PIXELS, PAPER_SPP_UNIT
+from .guides.parameters import PAPER_PIXELS, PAPER_SPP_UNIT, SDTreeParameters
 
 #: The reference's seed: the harness's default (config/schema.yaml), apart from the render seeds.
 REFERENCE_SEED = 1000003
@@ -46,8 +46,8 @@ class Variant:
         """The ``make_guide`` keywords of this row at an image of ``pixels`` pixels."""
         if not self.previous_threshold:
             return dict(self.overrides)
-        # c·sqrt(spp·pixels / (4·PAPER_PIXELS)) = 12000·sqrt(spp)
-        return {**self.overrides, "c": 12000.0 * math.sqrt(PAPER_SPP_UNIT * PAPER_PIXELS / pixels)}
+        # c·sqrt(spp·pixels / (4·PAPER_PIXELS)) = 12000·sqrt(spp), 12000 the default c
+        return {**self.overrides, "c": SDTreeParameters().c * math.sqrt(PAPER_SPP_UNIT * PAPER_PIXELS / pixels)}
 
 
 #: The SD-tree as it was run before (c = 12000 at every image size, its last iteration alone, BSDF sampling alone
