@@ -133,7 +133,7 @@ class RadianceRecord:
         self.sanitised: dict[str, int] = {}
         self.acc_sum = dr.zeros(mi.Float64, C * B)
         self.acc_count = dr.zeros(mi.Float64, C * B)
-        self.pass_targets = dr.zeros(mi.Float, 2 * C * B)
+        self.pass_targets = dr.zeros(mi.Float64, 2 * C * B)
         self.q = dr.zeros(mi.Float, C * B)
         self.policy = dr.full(mi.Float, 1.0 / B, C * B)
         self.cdf = None
@@ -242,29 +242,29 @@ class RadianceRecord:
     def accumulate(self, index: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:
         """Add ``target`` to entry ``index`` of this pass's sums (and one to its count), in the path loop.
 
-        The pass's sum and count of an entry are float32 neighbours in ``pass_targets`` (one cache line for both),
+        The pass's sum and count of an entry are float64 neighbours in ``pass_targets`` (one cache line for both),
         added without atomics where the CPU backend can give each thread a copy (``ReduceMode.Expand``, for tables
-        up to ``dr.expand_threshold()`` entries); :meth:`update` folds them into the float64 totals. Float64 atomic
-        adds are compare-and-swap loops on the CPU. A float32 count is exact to 2²⁴ visits of one entry in one
-        pass."""
+        up to ``dr.expand_threshold()`` entries; float64 atomic adds are compare-and-swap loops on the CPU), and
+        :meth:`update` folds them into the totals. Float64 sums of float32 targets come out the same in any order,
+        so the learned tables, and the images, do not depend on the thread count (float32 sums did)."""
         mode = dr.ReduceMode.Expand if dr.width(self.pass_targets) <= dr.expand_threshold() else dr.ReduceMode.Auto
-        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_targets, target, 2 * index, active, mode=mode)
-        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_targets, mi.Float(1), 2 * index + 1, active, mode=mode)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_targets, mi.Float64(target), 2 * index, active, mode=mode)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_targets, mi.Float64(1), 2 * index + 1, active, mode=mode)
 
     def totals(self):
         """The sums and visit counts of every entry as float64 NumPy arrays, this pass's targets included."""
         import numpy as np
 
-        pending = np.array(self.pass_targets, dtype=np.float64).reshape(-1, 2)
+        pending = np.array(self.pass_targets).reshape(-1, 2)
         return np.array(self.acc_sum) + pending[:, 0], np.array(self.acc_count) + pending[:, 1]
 
     def _fold_pass(self) -> None:
         """Add the pass's sums and counts to the totals, and clear them for the next pass."""
         entry = dr.arange(mi.UInt32, dr.width(self.acc_sum))
-        self.acc_sum = self.acc_sum + mi.Float64(dr.gather(mi.Float, self.pass_targets, 2 * entry))
-        self.acc_count = self.acc_count + mi.Float64(dr.gather(mi.Float, self.pass_targets, 2 * entry + 1))
+        self.acc_sum = self.acc_sum + dr.gather(mi.Float64, self.pass_targets, 2 * entry)
+        self.acc_count = self.acc_count + dr.gather(mi.Float64, self.pass_targets, 2 * entry + 1)
         dr.eval(self.acc_sum, self.acc_count)
-        self.pass_targets = dr.zeros(mi.Float, dr.width(self.pass_targets))
+        self.pass_targets = dr.zeros(mi.Float64, dr.width(self.pass_targets))
 
     # -------------------------------------------------------------------- update
     def update(self, spp_done: int) -> int:
@@ -340,7 +340,7 @@ class RadianceRecord:
         visited), computed without allocating anything (so that an oversized table can be refused before it is
         built)."""
         C, B, NB = spatial_resolution ** 3, 2 * directional_resolution ** 2, 6 * normal_resolution ** 2
-        total = C * B * (8 + 8 + 4 + 4 + 4 + 4 + (4 if needs_cdf else 0))   # totals, pass sums, Q, policy, CDF
+        total = C * B * (8 + 8 + 8 + 8 + 4 + 4 + (4 if needs_cdf else 0))   # totals, pass sums, Q, policy, CDF
         if needs_memo or needs_hemi_cdf or needs_in_bin or needs_value:
             total += 4 * ((6 if needs_in_bin else 5) * C * NB + (C * NB * B if needs_hemi_cdf else 0)
                           + (5 if needs_in_bin else 2) * NB * B)   # cosine tables, in-bin tables
