@@ -166,9 +166,13 @@ class _TreeGuide(Guide):
         recorded = slot != NO_RECORD
         # The RGB mean as a sum times 1/3: dr.mean (the grid's) rounds differently, and would change the trees.
         value = (L.x + L.y + L.z) * (1.0 / 3.0) / entry.pdf
-        dr.scatter_reduce(dr.ReduceOp.Add, self._energy_acc, value, slot, recorded & (value > 0) & dr.isfinite(value))
+        # An explicit mode: Dr.Jit's default picks Expand or atomics by the accumulators' size, which grows with the
+        # trees, and a change of mode is a new render kernel.
+        mode = dr.ReduceMode.Local
+        dr.scatter_reduce(dr.ReduceOp.Add, self._energy_acc, value, slot, recorded & (value > 0) & dr.isfinite(value),
+                          mode=mode)
         tree = dr.gather(mi.UInt32, self._recording.tree_of_node, slot // 4, recorded)
-        dr.scatter_reduce(dr.ReduceOp.Add, self._count_acc, mi.Float(1), tree, recorded)
+        dr.scatter_reduce(dr.ReduceOp.Add, self._count_acc, mi.Float(1), tree, recorded, mode=mode)
 
     def _pull(self) -> tuple[np.ndarray, np.ndarray]:
         """The recorded leaf energies and vertex counts. Entries that are NaN, ±Inf or negative (a float32 sum
