@@ -95,6 +95,7 @@ def runs_frame(rows: list[dict]) -> pd.DataFrame:
                   # The resolution a render reports is the one it ran at, whatever the method name said.
                   **{k: row["guide"][k] for k in ("S", "D") if k in row.get("guide", {})},
                   "resolution": "x".join(map(str, stats.get("resolution") or [])), "spp": stats.get("spp"),
+                  "spp_counted": _counted_spp(stats),
                   "seconds": stats.get("seconds"), "compile_seconds": stats.get("compile_seconds"),
                   "budget_seconds_counted": stats.get("budget_seconds_counted"), "hit_rate": stats.get("hit_rate"),
                   **{k: prov.get(k) for k in ("host", "device", "variant", "threads", "mitsuba", "drjit", "date")}}
@@ -108,13 +109,34 @@ def runs_frame(rows: list[dict]) -> pd.DataFrame:
     return frame[[c for c in RUN_COLUMNS if c in frame.columns] + extra]
 
 
+def _counted_spp(stats: dict):
+    """The spp that count against a seconds budget: those after the excluded leading passes."""
+    spp, budget = stats.get("spp"), stats.get("budget") or {}
+    if spp is None or not budget.get("seconds"):
+        return spp
+    return spp - (budget.get("exclude_passes") or 0) * (budget.get("pass_spp") or 0)
+
+
 def cells_frame(runs: pd.DataFrame, experiment: str, keys: list[str]) -> pd.DataFrame:
-    """Mean over seeds per cell (``keys``), with the spread, the seed count and the paper's number."""
+    """Mean over seeds per cell (``keys``), with the spread, the seed count, the paper's number and the efficiency
+    1/(MAE²·t) relative to BRDF's in the same scene (and budget): t is the counted seconds of a timed render, the
+    render + update seconds of an untimed one."""
+    runs = runs.assign(cost_seconds=runs["budget_seconds_counted"].fillna(runs["render_seconds"])
+                       if "budget_seconds_counted" in runs else runs["render_seconds"])
     grouped = runs.groupby(keys, sort=False, dropna=False)
     cells = grouped.agg(mae=("mae", "mean"), mae_std=("mae", "std"),
                         **{metric: (metric, "mean") for metric in OTHER_METRICS}, seeds=("seed", "count"),
-                        spp=("spp", "mean"), render_seconds=("render_seconds", "mean"), hit_rate=("hit_rate", "mean"),
-                        nonfinite_pixels=("nonfinite_pixels", "sum"), device=("device", _joined)).reset_index()
+                        spp=("spp", "mean"), spp_counted=("spp_counted", "mean"),
+                        render_seconds=("render_seconds", "mean"), cost_seconds=("cost_seconds", "mean"),
+                        hit_rate=("hit_rate", "mean"), nonfinite_pixels=("nonfinite_pixels", "sum"),
+                        device=("device", _joined)).reset_index()
+    efficiency = 1.0 / (cells["mae"] ** 2 * cells["cost_seconds"])
+    peers = [k for k in keys if k != "method"]
+    brdf = (cells.assign(efficiency=efficiency)[cells["method"] == "brdf"].set_index(peers)["efficiency"]
+            if peers else None)
+    baseline = [brdf.get(key if len(peers) > 1 else key[0], np.nan) if brdf is not None else np.nan
+                for key in cells[peers].itertuples(index=False, name=None)]
+    cells["efficiency_vs_brdf"] = efficiency / np.array(baseline, dtype=float)
     first = grouped.first().reset_index()
     for column in ("cli_method", "label", "S", "D", "rule", "sampler", "extra"):
         if column in first and column not in cells:
@@ -142,8 +164,15 @@ def fmt(value, digits: int = 4) -> str:
 def ours_paper(cell: dict | None) -> str:
     if cell is None:
         return "(not run)"
-    ours = fmt(cell["mae"]) if not math.isnan(cell["mae"]) else f"n/a ({int(cell['nonfinite_pixels'])} non-finite px)"
+    if math.isnan(cell["mae"]):
+        ours = f"n/a ({int(cell['nonfinite_pixels'])} non-finite px)"
+    else:
+        ours = fmt(cell["mae"]) + (f" ± {fmt(cell['mae_std'], 2)}" if cell.get("seeds", 1) > 1 else "")
     return f"{ours} / {fmt(cell['paper_mae'])}"
+
+
+def efficiency(cell: dict | None) -> str:
+    return "(not run)" if cell is None else f"{fmt(cell['efficiency_vs_brdf'], 3)}×"
 
 
 def markdown_table(header: list[str], rows: list[list[str]]) -> str:
@@ -209,15 +238,21 @@ def table2(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
             text += markdown_table(["rule", *[SAMPLER_LABELS[s] for s in spec["samplers"]]], rows)
         extras = [c for c in scene_cells if _is_true(c.get("extra"))]
         if extras:
-            text += "\n\n" + markdown_table(["method", "MAE ours / paper"],
-                                           [[c["label"], ours_paper(c)] for c in extras])
+            text += "\n\n" + markdown_table(["method", "MAE ours / paper", "efficiency vs BRDF"],
+                                           [[c["label"], ours_paper(c), efficiency(c)] for c in extras])
+        if rows:
+            text += ("\n\nEfficiency 1/(MAE²·t) relative to BRDF (t: render + update seconds):\n\n"
+                     + markdown_table(["rule", *[SAMPLER_LABELS[s] for s in spec["samplers"]]],
+                                      [[f"**{RULE_LABELS[rule]}**", *[efficiency(grid.get((rule, s)))
+                                                                     for s in spec["samplers"]]]
+                                       for rule in spec["rules"]]))
         parts.append(text)
     parts.append(provenance_note(runs, spec["timed"]))
     for column in ("rule", "sampler", "extra"):
         if column not in cells:
             cells[column] = None
     columns = ["scene", "rule", "sampler", "method", "cli_method", "label", "mae", "mae_std", "seeds", "paper_mae",
-               *OTHER_METRICS, "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
+               "efficiency_vs_brdf", *OTHER_METRICS, "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
     return cells[columns], "\n\n".join(parts) + "\n"
 
 
@@ -230,18 +265,24 @@ def equal_time(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
     def reached(cell: dict | None) -> str:
         if cell is None:
             return "(not run)"
-        return f"{fmt(cell['spp'], 6)} spp, {fmt(cell['render_seconds'], 3)} s, hit {fmt(cell['hit_rate'], 3)}"
+        return (f"{fmt(cell['spp_counted'], 6)} spp, {fmt(cell['render_seconds'], 3)} s, "
+                f"hit {fmt(cell['hit_rate'], 3)}")
 
     spp_rows = [[f"**{scene}**", *[reached(lookup.get((scene, m))) for m in spec["methods"]]]
                 for scene in spec["scenes"]]
+    efficiency_rows = [[f"**{scene}**", *[efficiency(lookup.get((scene, m))) for m in spec["methods"]]]
+                       for scene in spec["scenes"]]
     text = "\n\n".join([
         _header(spec, runs, "Equal time"),
         markdown_table(["scene", *labels], mae_rows),
-        "Samples reached, render + update time (compilation excluded), hit rate:",
+        "Efficiency 1/(MAE²·t) relative to BRDF (t: the counted seconds):",
+        markdown_table(["scene", *labels], efficiency_rows),
+        "Counted samples (mean over seeds; the excluded leading passes not included), render + update time of the "
+        "whole render (compilation excluded), hit rate:",
         markdown_table(["scene", *labels], spp_rows),
         provenance_note(runs, spec["timed"])]) + "\n"
-    columns = ["scene", "method", "cli_method", "label", "mae", "mae_std", "seeds", "paper_mae", *OTHER_METRICS,
-               "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
+    columns = ["scene", "method", "cli_method", "label", "mae", "mae_std", "seeds", "paper_mae", "efficiency_vs_brdf",
+               *OTHER_METRICS, "spp", "spp_counted", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
     return cells[columns], text
 
 

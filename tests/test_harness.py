@@ -172,7 +172,7 @@ def test_table1_layout_mean_over_seeds_and_paper_numbers():
     assert cell.mae == pytest.approx(0.08 + 0.016 + 0.001) and cell.seeds == 2
     assert cell.flip == pytest.approx(7 * cell.mae) and cell.mse == pytest.approx(4 * cell.mae)
     assert cell.paper_mae == pytest.approx(0.0347)
-    assert "| S \\ D | 16 | 8 |" in text and "| **8** | 0.097 / 0.0347 |" in text
+    assert "| S \\ D | 16 | 8 |" in text and "| **8** | 0.097 ± 0.0014 / 0.0347 |" in text
     assert "`box`: CPU: test" in text
 
 
@@ -208,13 +208,19 @@ def test_table2_layout_with_extra_methods_and_a_nonfinite_run():
 def test_equal_time_and_convergence_tables():
     config = harness.load_config(FULL_CONFIG)
     spec = _spec(config, "equal_time")
-    rows = [_row("equal_time", scene, m, 0, 0.02, budget="10s", spp=512)
+    rows = [_row("equal_time", scene, m, 0, 0.01 if m == "ours" else 0.02, budget="10s", spp=512)
             for scene in spec["scenes"] for m in spec["methods"]]
+    for row in rows:
+        row["stats"].update(budget={"seconds": 10, "pass_spp": 8, "exclude_passes": 10}, budget_seconds_counted=10.0)
     rows[-1]["provenance"] = {**rows[-1]["provenance"], "host": "other"}
     cells, text, _ = tables.build(spec, rows)
     assert len(cells) == len(spec["scenes"]) * len(spec["methods"])
     veach = cells[cells.scene == "veach-ajar"].set_index("method")
     assert veach.loc["ours", "paper_mae"] == pytest.approx(0.0740) and math.isnan(veach.loc["sdtree", "paper_mae"])
+    # Half brdf's error in the same time: four times its efficiency; the 80 uncounted spp are not counted.
+    assert veach.loc["ours", "efficiency_vs_brdf"] == pytest.approx(4.0)
+    assert veach.loc["brdf", "efficiency_vs_brdf"] == pytest.approx(1.0) and veach.loc["ours", "spp_counted"] == 432
+    assert "432 spp" in text and "| 4× |" in text
     assert "| scene | BRDF | Quadtree | Ours w/o rejection opt | Ours w/o SARSA | Ours | SD-tree |" in text
     assert "more than one machine" in text  # a timed experiment split over machines is flagged
 
