@@ -217,9 +217,10 @@ def extrapolated_variance(variance: float | None, spent: float, left: float) -> 
 def combine_iterations(images: list[np.ndarray], variances: list[float | None]) -> tuple[np.ndarray, list[float]]:
     """``(Σ w_k I_k, [w_k])``: iteration images weighted by the inverse of their variance, ``w_k ∝ 1/V_k``,
     normalised to sum to one. An image without a variance estimate gets weight 0; when none has one, the last
-    image alone is returned (weight 1). A zero variance (a black image) is floored at 1e-300: images with zero
-    variance then share all the weight equally."""
-    inverse = np.array([0.0 if v is None else 1.0 / max(v, 1e-300) for v in variances])
+    image alone is returned (weight 1). A zero estimate counts as none: it comes from an image in which no pass
+    found any light (a guide that has not yet found a small source), not from an exact one, and as 1/0 it would
+    take all the weight from the iterations that found the light (a black final image)."""
+    inverse = np.array([1.0 / v if v else 0.0 for v in variances])
     if not inverse.any():
         inverse[-1] = 1.0
     weights = inverse / inverse.sum()

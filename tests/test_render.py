@@ -173,6 +173,12 @@ def test_inverse_variance_combination_weights():
     np.testing.assert_allclose(image, 2.0 / 3 + 8.0 / 3)
     image, weights = combine_iterations(images, [None, None, None])   # no estimate: the last image alone
     assert weights == [0.0, 0.0, 1.0] and (image == 4.0).all()
+    # An iteration whose passes found no light has variance 0: no estimate, not all the weight.
+    images = [np.zeros((2, 2, 3)), np.full((2, 2, 3), 2.0), np.full((2, 2, 3), 4.0)]
+    image, weights = combine_iterations(images, [0.0, 0.5, 0.25])
+    assert weights == pytest.approx([0.0, 1 / 3, 2 / 3])
+    image, weights = combine_iterations(images[:1] * 2, [0.0, 0.0])   # a black scene: the last (black) image
+    assert weights == [0.0, 1.0] and (image == 0.0).all()
 
 
 def test_progress_lines_off_a_terminal_and_a_bar_with_eta_on_request(cornell, capsys, monkeypatch):
