@@ -76,7 +76,8 @@ def test_glossy_room_first_vertices_are_glossy_and_the_light_is_hidden(glossy_ro
 
 def test_sun_blinds_sun_is_tiny_hidden_and_lights_diffuse_stripes(sun_blinds):
     """The only emitter covers < 1/5 of one ~9° bin of `ours` (4π/512 sr ≈ 0.025 sr) seen from the room's centre
-    and is not in the camera's view; every first vertex is diffuse (every method guides); the sun lights thin stripes only."""
+    and is not in the camera's view; every first vertex is diffuse (every method guides); the sun lights thin
+    stripes only."""
     sun = _only_emitter_shape(sun_blinds)
     box = sun.bbox()
     room = mi.ScalarBoundingBox3f()
