@@ -462,7 +462,7 @@ def _command_validate(args) -> None:
     import pandas as pd
 
     from .validation import (UNBIASEDNESS_METHODS, UNBIASEDNESS_SCENES, bounce_weight_table, learning_table,
-                             unbiasedness_table)
+                             smooth_share_table, unbiasedness_table)
 
     device = device_name(variant)
     budgets = {name: (scale, 6, 8) if args.quick else (scale, passes, spp)
@@ -485,6 +485,11 @@ def _command_validate(args) -> None:
     write_table(learning, out / "learning", "Equal spp on door-ajar (scale 0.25): MAE vs a `path` reference",
                 device, "python -m guiding validate")
     print(learning.to_string(index=False))
+    share = smooth_share_table(spp=32 if args.quick else 256, reference_spp=256 if args.quick else 8192)
+    write_table(share, out / "ours_plus_share", "ours-plus's least BSDF share at glossy vertices "
+                "(`smooth_bsdf_share`) at equal spp (scale 1/16, seeds 0 and 1): MAE vs a `path` reference",
+                device, "python -m guiding validate")
+    print(share.to_string(index=False))
 
 
 def _command_sdtree_baseline(args) -> None:

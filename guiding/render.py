@@ -210,8 +210,9 @@ def iteration_variance(first: np.ndarray, second: np.ndarray, spp: int, passes: 
 def extrapolated_variance(variance: float | None, spent: float, left: float) -> float | None:
     """The variance of the final image if the distribution of an iteration whose image has ``variance`` after
     ``spent`` spp (or seconds) had rendered the ``left`` spp (seconds) left when it started: ``variance·spent /
-    left`` (the variance of a mean falls as 1/samples). None without a variance estimate."""
-    return None if variance is None else variance * spent / left
+    left`` (the variance of a mean falls as 1/samples). None without a variance estimate, or with a zero one (no
+    pass found light: :func:`combine_iterations`), which would stop training as soon as the guide finds the light."""
+    return variance * spent / left if variance else None
 
 
 def combine_iterations(images: list[np.ndarray], variances: list[float | None]) -> tuple[np.ndarray, list[float]]:

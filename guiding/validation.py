@@ -110,12 +110,10 @@ def bounce_weight_table(scene_name: str, methods: list[str], scale: float = 0.1,
     return pd.DataFrame(rows)
 
 
-def learning_table(scene_name: str = "door-ajar", scale: float = 0.25, spp: int = 256, reference_spp: int = 4096,
-                   methods: tuple[str, ...] = ("brdf", "ours", "ours-uniform-proposals", "ours-no-rejopt",
-                                               "ours-expected", "sdtree", "quadtree-grid")) -> pd.DataFrame:
-    """MAE, relMSE, hit rate and time of each method at equal spp against a `path` reference."""
-    import pandas as pd
-
+def _equal_spp_rows(scene_name: str, scale: float, spp: int, reference_spp: int, seeds: tuple[int, ...],
+                    configurations: list[tuple[dict, str, dict]]) -> list[dict]:
+    """One row per (configuration, seed): MAE, relMSE, hit rate and time at equal spp against a `path` reference.
+    ``configurations``: (the row's fields, method name, ``make_guide`` overrides)."""
     from .integrator import GuidedPathIntegrator
     from .methods import make_guide
     from .metrics import evaluate
@@ -126,11 +124,47 @@ def learning_table(scene_name: str = "door-ajar", scale: float = 0.25, spp: int 
     reference = render(scene, mi.load_dict({"type": "path", "max_depth": 16}),
                        Budget(spp=reference_spp, pass_spp=64), seed=1000, progress=False)
     rows = []
-    for method in methods:
-        result = render(scene, GuidedPathIntegrator(guide=make_guide(method)), Budget(spp=spp), seed=1,
-                        progress=False)
-        errors = evaluate(result.image, reference.image)
-        rows.append({"method": method, "spp": result.spp, "mae": errors["mae"], "relmse": errors["relmse"],
-                     "hit_rate": result.hit_rate, "seconds": result.seconds,
-                     "update_seconds": sum(p.update_seconds for p in result.passes)})
-    return pd.DataFrame(rows)
+    for fields, method, overrides in configurations:
+        for seed in seeds:
+            result = render(scene, GuidedPathIntegrator(guide=make_guide(method, **overrides)), Budget(spp=spp),
+                            seed=seed, progress=False)
+            errors = evaluate(result.image, reference.image)
+            rows.append({**fields, "seed": seed, "spp": result.spp, "mae": errors["mae"], "relmse": errors["relmse"],
+                         "hit_rate": result.hit_rate, "seconds": result.seconds,
+                         "update_seconds": sum(p.update_seconds for p in result.passes)})
+    return rows
+
+
+def learning_table(scene_name: str = "door-ajar", scale: float = 0.25, spp: int = 256, reference_spp: int = 4096,
+                   methods: tuple[str, ...] = ("brdf", "ours", "ours-uniform-proposals", "ours-no-rejopt",
+                                               "ours-expected", "sdtree", "quadtree-grid")) -> pd.DataFrame:
+    """MAE, relMSE, hit rate and time of each method at equal spp against a `path` reference."""
+    import pandas as pd
+
+    rows = _equal_spp_rows(scene_name, scale, spp, reference_spp, (1,), [({"method": m}, m, {}) for m in methods])
+    return pd.DataFrame(rows).drop(columns="seed")
+
+
+#: The scenes of the ours-plus BSDF share study: the shipped glossy room, and the two shared scenes with rough
+#: plastic and metal.
+SHARE_SCENES = ("glossy-room", "living-room", "staircase2")
+
+
+def smooth_share_table(scenes: tuple[str, ...] = SHARE_SCENES, shares: tuple[float, ...] = (0.25, 0.5, 0.75),
+                       scale: float = 0.0625, spp: int = 256, reference_spp: int = 8192,
+                       seeds: tuple[int, ...] = (0, 1)) -> pd.DataFrame:
+    """``ours-plus``'s least BSDF share at glossy vertices (``smooth_bsdf_share``) at equal spp, beside ``ours``:
+    mean and spread over ``seeds`` of the MAE of each scene and share, with the hit rate and time."""
+    import pandas as pd
+
+    rows = []
+    for scene in scenes:
+        configurations = [({"scene": scene, "method": "ours", "smooth_bsdf_share": None}, "ours", {})]
+        configurations += [({"scene": scene, "method": "ours-plus", "smooth_bsdf_share": share}, "ours-plus",
+                            {"smooth_bsdf_share": share}) for share in shares]
+        rows += _equal_spp_rows(scene, scale, spp, reference_spp, seeds, configurations)
+    frame = pd.DataFrame(rows)
+    keys = ["scene", "method", "smooth_bsdf_share"]
+    return frame.groupby(keys, sort=False, dropna=False).agg(
+        mae=("mae", "mean"), mae_std=("mae", "std"), relmse=("relmse", "mean"), hit_rate=("hit_rate", "mean"),
+        seconds=("seconds", "mean"), seeds=("seed", "count")).reset_index()
