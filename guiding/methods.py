@@ -146,9 +146,10 @@ def table_bytes(name: str) -> int | None:
                                         parameters.normal_resolution, **needs)
 
 
-def check_memory(name: str, limit: int | str | None = None) -> None:
-    """Raise GuidingError if the tables of method ``name`` would exceed the memory limit (:func:`memory_limit`),
-    with the size they would need: before anything is allocated, rather than failing (or swapping) in the middle."""
+def check_memory(name: str, limit: int | str | None = None) -> int:
+    """Raise GuidingError if the fixed tables of method ``name`` would exceed the memory limit
+    (:func:`memory_limit`), with the size they would need: before anything is allocated, rather than failing (or
+    swapping) in the middle. Returns the limit in bytes."""
     size, allowed = table_bytes(name), memory_limit(limit)
     if size is not None and size > allowed:
         parameters = grid_parameters(name)
@@ -156,6 +157,7 @@ def check_memory(name: str, limit: int | str | None = None) -> None:
         raise GuidingError(f"method '{name}' needs {format_size(size)} for its tables (S = {S}, D = {D}: {S ** 3} "
                            f"cells x {2 * D * D} direction bins), over the memory limit of {format_size(allowed)}; "
                            f"lower S or D, or raise the limit (--memory-limit or ${MEMORY_LIMIT_VARIABLE})")
+    return allowed
 
 
 def check_method(name: str, memory_limit: int | str | None = None) -> None:
@@ -170,5 +172,10 @@ def make_guide(name: str, memory_limit: int | str | None = None, **overrides) ->
     ``make_guide("sarsa-hemi_inv", bsdf_fraction=0)``); refused (GuidingError) if its tables would exceed
     ``memory_limit`` (default: :func:`memory_limit`)."""
     method = resolve(name)
-    check_memory(name, memory_limit)
-    return method.build(name, overrides)
+    allowed = check_memory(name, memory_limit)
+    guide = method.build(name, overrides)
+    record = getattr(guide, "record_table", None)
+    if record is not None and hasattr(record, "row_memory_limit"):
+        # What the fixed tables leave of the limit is what the visited pairs' rows may grow into.
+        record.row_memory_limit = allowed - table_bytes(name)
+    return guide

@@ -25,6 +25,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..directions import NormalBins, SphereBins
+from ..errors import GuidingError
 from .grid_cells import GridCells
 from .parameters import MIN_EXPLORATION
 
@@ -55,6 +56,9 @@ REACHABLE_FLOOR = 0.01
 #: drawn; when all are rejected the BSDF's direction is used, with the pair's probability ``in_bin_miss`` of that in
 #: the density. Interior bins accept ~90 % of proposals; bins across the horizon less, and they are rarely drawn.
 IN_BIN_PROPOSALS = 2
+#: Bytes per entry of the visited pairs' CDF rows while they are built: the row (4), its weights and their prefix
+#: sums (evaluated by the scan), and the gathered indices.
+ROW_BUILD_BYTES = 16
 
 
 
@@ -131,6 +135,7 @@ class RadianceRecord:
         B, NB, C = self.bins.count, self.normal_bins.count, self.cells
 
         self.sanitised: dict[str, int] = {}
+        self.row_memory_limit: int | None = None     # bytes the visited pairs' CDF rows may take (None: no limit)
         self.acc_sum = dr.zeros(mi.Float64, C * B)
         self.acc_count = dr.zeros(mi.Float64, C * B)
         self.pass_targets = dr.zeros(mi.Float64, 2 * C * B)
@@ -306,6 +311,11 @@ class RadianceRecord:
         count = dr.width(pairs)
         if count == 0:
             return 0
+        if self.row_memory_limit is not None and count * B * ROW_BUILD_BYTES > self.row_memory_limit:
+            raise GuidingError(f"the grid guide visited {count} (cell, normal bin) pairs: their CDF rows need "
+                               f"{count * B * ROW_BUILD_BYTES / 2 ** 30:.1f} GiB to build, over the "
+                               f"{self.row_memory_limit / 2 ** 30:.1f} GiB left by the memory limit; lower S or D, "
+                               "or raise the limit")
         flat = dr.arange(mi.UInt32, count * B)
         pair = dr.gather(mi.UInt32, pairs, flat // B)
         k = flat % B
@@ -336,14 +346,15 @@ class RadianceRecord:
     def planned_bytes(spatial_resolution: int, directional_resolution: int, normal_resolution: int = 5,
                       needs_cdf: bool = False, needs_memo: bool = False, needs_hemi_cdf: bool = False,
                       needs_in_bin: bool = False, needs_value: bool = False) -> int:
-        """The most bytes :meth:`memory_bytes` can report for a record built with these arguments (every pair
-        visited), computed without allocating anything (so that an oversized table can be refused before it is
-        built)."""
+        """The bytes of the tables whose size is fixed when a record is built with these arguments, computed
+        without allocating anything (so that an oversized table can be refused before it is built). The CDF rows of
+        the visited pairs (``hemi_cdf``, one row of 2·D² floats per pair) come on top: they grow with the visits,
+        and :meth:`_update_memo` checks them against ``row_memory_limit``."""
         C, B, NB = spatial_resolution ** 3, 2 * directional_resolution ** 2, 6 * normal_resolution ** 2
         total = C * B * (8 + 8 + 8 + 8 + 4 + 4 + (4 if needs_cdf else 0))   # totals, pass sums, Q, policy, CDF
         if needs_memo or needs_hemi_cdf or needs_in_bin or needs_value:
-            total += 4 * ((6 if needs_in_bin else 5) * C * NB + (C * NB * B if needs_hemi_cdf else 0)
-                          + (5 if needs_in_bin else 2) * NB * B)   # cosine tables, in-bin tables
+            total += 4 * ((6 if needs_in_bin else 5) * C * NB + (B if needs_hemi_cdf else 0)
+                          + (5 if needs_in_bin else 2) * NB * B)   # placeholder row, cosine and in-bin tables
         return total
 
     def memory_bytes(self) -> int:

@@ -23,9 +23,9 @@ OVERSIZED_METHOD = "ours-S64-D64"
 
 @pytest.mark.parametrize("rule", RULES)
 def test_planned_table_size_is_what_built_tables_report(rule, figures):
-    """The size planned before allocation (`RadianceRecord.planned_bytes`, every pair visited) bounds what a built
-    record reports, and equals it once every (cell, normal bin) pair has been visited, for every sampler and
-    proposal (the per-pair CDFs hold rows for visited pairs only)."""
+    """The size planned before allocation (`RadianceRecord.planned_bytes`, the fixed tables) bounds what a built
+    record reports, and with one CDF row per (cell, normal bin) pair equals it once every pair has been visited,
+    for every sampler and proposal (the per-pair CDFs hold rows for visited pairs only)."""
     for sampler in SAMPLERS:
         for proposal in PROPOSALS:
             record = GridGuide(spatial_resolution=2, directional_resolution=3, rule=rule, sampler=sampler,
@@ -37,12 +37,26 @@ def test_planned_table_size_is_what_built_tables_report(rule, figures):
                 record.visited = record.visited + 1
             record.update(spp_done=8)
             visited = record.memory_bytes()
-            assert planned == visited, f"{sampler} ({proposal}): planned {planned} bytes, all pairs visited {visited}"
+            # every pair's row, in place of the placeholder row a fresh record holds
+            rows = (record.cells * record.normal_bins.count - 1) * record.bins.count * 4 if record.needs_hemi_cdf else 0
+            assert planned + rows == visited, f"{sampler} ({proposal}): planned {planned} + rows {rows} bytes, " \
+                                              f"all pairs visited {visited}"
     figures["configurations"] = len(SAMPLERS) * len(PROPOSALS)
 
 
+def test_visited_pairs_rows_over_the_limit_are_refused():
+    """The per-pair CDF rows grow with the visits: an update that would build more than the memory limit leaves
+    for them stops with one line naming the pairs and the bytes, rather than exhausting the machine."""
+    guide = make_guide("ours-S2-D3", memory_limit=table_bytes("ours-S2-D3") + 100)
+    record = guide.record_table
+    assert record.row_memory_limit == 100
+    record.visited = record.visited + 1
+    with pytest.raises(GuidingError, match=r"visited 1200 \(cell, normal bin\) pairs: their CDF rows need"):
+        record.update(spp_done=8)
+
+
 def test_table_over_the_limit_is_refused(figures):
-    """A table over the memory limit (ours-S64-D64: 56.6 GiB) is refused with one line giving the size it needs,
+    """A table over the memory limit (ours-S64-D64) is refused with one line giving the size it needs,
     by `check_method` and by `make_guide`; a table exactly at the limit, or under a raised one, is allowed."""
     size = table_bytes(OVERSIZED_METHOD)
     figures.update(oversized_table=format_size(size), ours_table=format_size(table_bytes("ours")))
