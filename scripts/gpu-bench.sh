@@ -10,12 +10,7 @@
 # Device:      run(command="bash scripts/gpu-bench.sh", carry=[".whl"], timeout_s=590)
 # The project's scenes are benchmarked (the shared ones do not travel); GPU_BENCH_SCENES overrides the list.
 set -euo pipefail
-cd "$(dirname "$0")/.."
-export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD"
-if [ -d .whl ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
-  export PYTHONPATH="/tmp/site:$PWD"
-fi
+source "$(dirname "$0")/gpu-env.sh"
 results=$(mktemp -d)
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$results/device.txt"
 scenes=${GPU_BENCH_SCENES:-cornell:1,door-ajar:1,glossy-box:1}

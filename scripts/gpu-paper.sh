@@ -5,12 +5,7 @@
 #
 # Wheels for a machine without an index, made here once: ../shared/tools/gpu-wheels.sh (writes .whl/).
 set -euo pipefail
-cd "$(dirname "$0")/.."
-export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD"
-if [ -d .whl ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
-  export PYTHONPATH="/tmp/site:$PWD"
-fi
+source "$(dirname "$0")/gpu-env.sh"
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 start=$(date +%s)
 timeout "${GPU_PAPER_TIMEOUT:-590}" python3 -m snakemake --cores 4 --resources timing=1 gpu=1 \
