@@ -174,8 +174,7 @@ def make_guide(name: str, memory_limit: int | str | None = None, **overrides) ->
     method = resolve(name)
     allowed = check_memory(name, memory_limit)
     guide = method.build(name, overrides)
-    record = getattr(guide, "record_table", None)
-    if record is not None and hasattr(record, "row_memory_limit"):
+    if getattr(guide, "record_table", None) is not None:     # a grid guide (as guide_state tells them apart)
         # What the fixed tables leave of the limit is what the visited pairs' rows may grow into.
-        record.row_memory_limit = allowed - table_bytes(name)
+        guide.record_table.row_memory_limit = allowed - table_bytes(name)
     return guide

@@ -121,8 +121,7 @@ def cells_frame(runs: pd.DataFrame, experiment: str, keys: list[str]) -> pd.Data
     """Mean over seeds per cell (``keys``), with the spread, the seed count, the paper's number and the efficiency
     1/(MAE²·t) relative to BRDF's in the same scene (and budget): t is the counted seconds of a timed render, the
     render + update seconds of an untimed one."""
-    runs = runs.assign(cost_seconds=runs["budget_seconds_counted"].fillna(runs["render_seconds"])
-                       if "budget_seconds_counted" in runs else runs["render_seconds"])
+    runs = runs.assign(cost_seconds=runs["budget_seconds_counted"].fillna(runs["render_seconds"]))
     grouped = runs.groupby(keys, sort=False, dropna=False)
     cells = grouped.agg(mae=("mae", "mean"), mae_std=("mae", "std"),
                         **{metric: (metric, "mean") for metric in OTHER_METRICS}, seeds=("seed", "count"),
@@ -131,12 +130,10 @@ def cells_frame(runs: pd.DataFrame, experiment: str, keys: list[str]) -> pd.Data
                         hit_rate=("hit_rate", "mean"), nonfinite_pixels=("nonfinite_pixels", "sum"),
                         device=("device", _joined)).reset_index()
     efficiency = 1.0 / (cells["mae"] ** 2 * cells["cost_seconds"])
-    peers = [k for k in keys if k != "method"]
-    brdf = (cells.assign(efficiency=efficiency)[cells["method"] == "brdf"].set_index(peers)["efficiency"]
-            if peers else None)
-    baseline = [brdf.get(key if len(peers) > 1 else key[0], np.nan) if brdf is not None else np.nan
-                for key in cells[peers].itertuples(index=False, name=None)]
-    cells["efficiency_vs_brdf"] = efficiency / np.array(baseline, dtype=float)
+    peers = [k for k in keys if k != "method"]          # the cells BRDF's is compared with: same scene (and budget)
+    brdf = cells.loc[cells["method"] == "brdf", peers].assign(brdf_efficiency=efficiency)
+    baseline = cells[peers].merge(brdf, on=peers, how="left")["brdf_efficiency"].to_numpy()   # NaN: no BRDF
+    cells["efficiency_vs_brdf"] = efficiency.to_numpy() / baseline
     first = grouped.first().reset_index()
     for column in ("cli_method", "label", "S", "D", "rule", "sampler", "extra"):
         if column in first and column not in cells:

@@ -10,7 +10,8 @@ from guiding.errors import GuidingError
 from guiding.imageio import read_exr
 from guiding.integrator import GuidedPathIntegrator
 from guiding.driver import pass_seed
-from guiding.render import Budget, combine_iterations, is_snapshot_spp, iteration_variance, render
+from guiding.render import (Budget, combine_iterations, extrapolated_variance, is_snapshot_spp,
+                            iteration_variance, render)
 
 
 def test_spp_budget_is_exact(cornell):
@@ -179,6 +180,9 @@ def test_inverse_variance_combination_weights():
     assert weights == pytest.approx([0.0, 1 / 3, 2 / 3])
     image, weights = combine_iterations(images[:1] * 2, [0.0, 0.0])   # a black scene: the last (black) image
     assert weights == [0.0, 1.0] and (image == 0.0).all()
+    # Nor does it count for the automatic budget: a rise from 0 would stop training when the guide finds light.
+    assert extrapolated_variance(0.0, 64, 512) is None and extrapolated_variance(None, 64, 512) is None
+    assert extrapolated_variance(0.5, 64, 512) == pytest.approx(0.0625)
 
 
 def test_progress_lines_off_a_terminal_and_a_bar_with_eta_on_request(cornell, capsys, monkeypatch):
