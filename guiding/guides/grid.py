@@ -41,6 +41,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .base import Guide, UpdateResult
+from .cdf_rows import sample_rows
 from .grid_record import IN_BIN_PROPOSALS, RadianceRecord, table_needs
 from .parameters import (PROFILE_BSDF_PATHS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
                          with_overrides)
@@ -64,21 +65,16 @@ class _Vertex:
     side: mi.Float
     pair: mi.UInt32 = None
     norm: mi.Float = None          # N at the normal bin's centre (0: the pair has no memo yet)
-    row: mi.UInt32 = None          # first entry of the pair's row of ``hemi_cdf``
+    row: mi.UInt32 = None          # the pair's row number in ``hemi_cdf``
     centre: mi.Vector3f = None     # n_c, the normal bin's centre on the arrival side (world)
     bound: mi.Float = None         # M ≥ max P·cos(ω, n_c)
     bsdf_share: mi.Float = None    # u: bsdf_fraction, or max(ε_r, min_bsdf_share); ≥ smooth_bsdf_share if not diffuse
 
 
-def _invert_cdf(cdf: mi.Float, row: mi.UInt32, size: int, u: mi.Float, active: mi.Bool) -> mi.UInt32:
-    """The first k in [0, size) with ``cdf[row + k] > u`` (binary search over one row of inclusive CDFs)."""
-    return dr.binary_search(0, size - 1, lambda i: dr.gather(mi.Float, cdf, row + i, active) <= u)
-
-
-def _direction_from_cdf(bins, cdf: mi.Float, row: mi.UInt32, sampler: mi.Sampler,
+def _direction_from_cdf(bins, cdf: mi.Float, cuts: mi.UInt32, row_id: mi.UInt32, sampler: mi.Sampler,
                         active: mi.Bool) -> tuple[mi.Vector3f, mi.UInt32]:
     """A bin drawn from one row of per-bin CDFs, then a uniform direction inside it: (world direction, bin)."""
-    k = _invert_cdf(cdf, row, bins.count, sampler.next_1d(active), active)
+    k = sample_rows(cdf, cuts, row_id, bins.count, sampler.next_1d(active), active)
     return bins.sample(k, sampler.next_2d(active)), k
 
 
@@ -321,18 +317,17 @@ class GridGuide(Guide):
         table = self.record_table
         if self.sampler == "sphere_inv":
             return dr.gather(mi.Float, table.policy, vertex.cell * table.bins.count + k, vertex.guided)
-        above = dr.gather(mi.Float, table.hemi_cdf, vertex.row + k, vertex.guided)
-        below = dr.gather(mi.Float, table.hemi_cdf, vertex.row + k - 1, vertex.guided & (k > 0))
+        first = vertex.row * table.bins.count
+        above = dr.gather(mi.Float, table.hemi_cdf, first + k, vertex.guided)
+        below = dr.gather(mi.Float, table.hemi_cdf, first + k - 1, vertex.guided & (k > 0))
         return above - below
 
     def _sample_inversion(self, sampler, vertex, active) -> tuple[mi.Vector3f, mi.UInt32]:
         """A world direction drawn from the sampler's CDF row (the cell's, or the pair's), and its bin."""
         table = self.record_table
         if self.sampler == "sphere_inv":
-            cdf, row = table.cdf, vertex.cell * table.bins.count
-        else:
-            cdf, row = table.hemi_cdf, vertex.row
-        return _direction_from_cdf(table.bins, cdf, row, sampler, active)
+            return _direction_from_cdf(table.bins, table.cdf, table.cdf_cuts, vertex.cell, sampler, active)
+        return _direction_from_cdf(table.bins, table.hemi_cdf, table.hemi_cuts, vertex.row, sampler, active)
 
     def _sample_rejection(self, sampler, vertex, searching) -> tuple[mi.Vector3f, mi.UInt32 | None, mi.Bool]:
         """A world direction from the target ``P·cos⁺(ω, n_c)/N``: (direction, the bin it was drawn in or None,
@@ -340,7 +335,8 @@ class GridGuide(Guide):
         table = self.record_table
         centre = vertex.centre
         if self.proposal == "bins":
-            k = _invert_cdf(table.hemi_cdf, vertex.row, table.bins.count, sampler.next_1d(searching), searching)
+            k = sample_rows(table.hemi_cdf, table.hemi_cuts, vertex.row, table.bins.count, sampler.next_1d(searching),
+                            searching)
             bound = dr.gather(mi.Float, table.in_bin_bound, table.in_bin_flat(vertex.pair, k), searching)
 
             def propose(sampler, active):

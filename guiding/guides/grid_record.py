@@ -12,7 +12,8 @@ the learning rate 1/N) into Q, the policy ``P = (1 − ε)·(Q + 1e-6)/Σ(Q + 1e
 - ``bound`` M ≥ max_H P·cos over every normal of the normal bin (a true bound, so rejection is exact),
 - ``value`` V = ∫_H Q·cos dω, Expected SARSA's expectation,
 - ``hemi_cdf`` the CDF over bins of P·∫_bin cos (``hemi_inv``, and the ``bins`` proposal of the rejection samplers),
-  one row per visited pair only (``row_of`` maps a pair to its row): 469 rows on cornell-box at S = 8, against the
+  one row per visited pair only (``row_of`` maps a pair to its row number), with its cut points
+  (:mod:`~guiding.guides.cdf_rows`): 469 rows on cornell-box at S = 8, against the
   76 800 pairs of the grid (157 MB dense, and a binary search in it missed the caches).
 
 N and V use the cosine integrals at the normal bin's centre (exact there; the error elsewhere is measured in
@@ -26,6 +27,7 @@ import mitsuba as mi
 
 from ..directions import NormalBins, SphereBins
 from ..errors import GuidingError
+from .cdf_rows import cut_count, cut_points, normalised_cdf
 from .grid_cells import GridCells
 from .parameters import MIN_EXPLORATION
 
@@ -57,8 +59,9 @@ REACHABLE_FLOOR = 0.01
 #: the density. Interior bins accept ~90 % of proposals; bins across the horizon less, and they are rarely drawn.
 IN_BIN_PROPOSALS = 2
 #: Bytes per entry of the visited pairs' CDF rows while they are built: the row (4), its weights and their prefix
-#: sums (evaluated by the scan), and the gathered indices.
+#: sums (evaluated by the scan), and the gathered indices; and per cut point: the point and its histogram entry.
 ROW_BUILD_BYTES = 16
+CUT_BUILD_BYTES = 8
 
 
 
@@ -75,19 +78,6 @@ def table_needs(rule: str, sampler: str, proposal: str) -> dict[str, bool]:
 def exploration(spp_done: int, floor: float = MIN_EXPLORATION) -> float:
     """ε = max(0.1^(N/100), floor) for N samples per pixel completed before the pass (method.md §4)."""
     return max(0.1 ** (spp_done / 100.0), floor)
-
-
-def _normalised_cdf(weight: mi.Float, size: int) -> mi.Float:
-    """Inclusive CDFs of consecutive rows of ``size`` weights, each divided by its own last entry.
-
-    Every row then ends at exactly 1.0 (x/x is exact), as do the trailing zero-weight bins, so a binary search for
-    any u < 1 stops at a bin with positive weight. Dividing by a separately reduced total instead (summed in
-    another order) left rows ending at 1 − 1e-7: u above that picked the last bin even when its weight was 0,
-    a direction with density 0.
-    """
-    running = dr.block_prefix_sum(weight, size, exclusive=False)
-    row_end = (dr.arange(mi.UInt32, dr.width(weight)) // size + 1) * size - 1
-    return running / dr.gather(mi.Float, running, row_end)
 
 
 def _angular_radius(directions_of, count: int, centres: mi.Vector3f) -> mi.Float:
@@ -141,21 +131,24 @@ class RadianceRecord:
         self.pass_targets = dr.zeros(mi.Float64, 2 * C * B)
         self.q = dr.zeros(mi.Float, C * B)
         self.policy = dr.full(mi.Float, 1.0 / B, C * B)
-        self.cdf = None
+        self.cdf = self.cdf_cuts = None
         if needs_cdf:
             self.cdf = dr.tile(dr.arange(mi.Float, 1, B + 1) / B, C)
+            self.cdf_cuts = cut_points(self.cdf, B)
         if self.needs_pairs:
             self.visited = dr.zeros(mi.UInt32, C * NB)
             self.norm = dr.zeros(mi.Float, C * NB)
             self.bound = dr.zeros(mi.Float, C * NB)
             self.value = dr.zeros(mi.Float, C * NB)
             self.row_of = dr.zeros(mi.UInt32, C * NB)
-            self.hemi_cdf = dr.zeros(mi.Float, B) if needs_hemi_cdf else None   # a row, never read, until a visit
+            # A row, never read, until a visit.
+            self.hemi_cdf = dr.zeros(mi.Float, B) if needs_hemi_cdf else None
+            self.hemi_cuts = dr.zeros(mi.UInt32, cut_count(B) + 1) if needs_hemi_cdf else None
             self.cos_integral, self.max_cos = self._cosine_tables()
             self.in_bin_bound, self.in_bin_scale, self.in_bin_misses = (self._in_bin_tables() if needs_in_bin
                                                                         else (None, None, None))
             self.in_bin_miss = dr.zeros(mi.Float, C * NB) if needs_in_bin else None
-        dr.eval(self.policy, self.cdf)
+        dr.eval(self.policy, self.cdf, self.cdf_cuts)
 
     # ------------------------------------------------------------------ geometry
     def set_bounds(self, bbox: mi.BoundingBox3f) -> None:
@@ -287,8 +280,9 @@ class RadianceRecord:
         totals = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, shifted, B), cell_of)
         self.policy = (1 - epsilon) * shifted / totals + epsilon / B
         if self.needs_cdf:
-            self.cdf = _normalised_cdf(self.policy, B)
-        dr.eval(self.q, self.policy, self.cdf)
+            self.cdf = normalised_cdf(self.policy, B)
+            self.cdf_cuts = cut_points(self.cdf, B)
+        dr.eval(self.q, self.policy, self.cdf, self.cdf_cuts)
         return self._update_memo() if self.needs_pairs else 0
 
     def _sanitise(self) -> None:
@@ -311,9 +305,10 @@ class RadianceRecord:
         count = dr.width(pairs)
         if count == 0:
             return 0
-        if self.row_memory_limit is not None and count * B * ROW_BUILD_BYTES > self.row_memory_limit:
+        row_bytes = count * (B * ROW_BUILD_BYTES + (cut_count(B) + 1) * CUT_BUILD_BYTES)
+        if self.row_memory_limit is not None and row_bytes > self.row_memory_limit:
             raise GuidingError(f"the grid guide visited {count} (cell, normal bin) pairs: their CDF rows need "
-                               f"{count * B * ROW_BUILD_BYTES / 2 ** 30:.1f} GiB to build, over the "
+                               f"{row_bytes / 2 ** 30:.1f} GiB to build, over the "
                                f"{self.row_memory_limit / 2 ** 30:.1f} GiB left by the memory limit; lower S or D, "
                                "or raise the limit")
         flat = dr.arange(mi.UInt32, count * B)
@@ -337,9 +332,10 @@ class RadianceRecord:
                 dr.scatter(self.in_bin_miss, dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, B), pairs)
             else:
                 weight = p * dr.maximum(cos_integral, dr.select(max_cos > 0, REACHABLE_FLOOR * self.bins.solid_angle, 0))
-            self.hemi_cdf = _normalised_cdf(weight, B)
-            dr.scatter(self.row_of, dr.arange(mi.UInt32, count) * B, pairs)
-        dr.eval(self.norm, self.bound, self.value, self.hemi_cdf, self.row_of, self.in_bin_miss)
+            self.hemi_cdf = normalised_cdf(weight, B)
+            self.hemi_cuts = cut_points(self.hemi_cdf, B)
+            dr.scatter(self.row_of, dr.arange(mi.UInt32, count), pairs)
+        dr.eval(self.norm, self.bound, self.value, self.hemi_cdf, self.hemi_cuts, self.row_of, self.in_bin_miss)
         return count
 
     @staticmethod
@@ -348,19 +344,22 @@ class RadianceRecord:
                       needs_in_bin: bool = False, needs_value: bool = False) -> int:
         """The bytes of the tables whose size is fixed when a record is built with these arguments, computed
         without allocating anything (so that an oversized table can be refused before it is built). The CDF rows of
-        the visited pairs (``hemi_cdf``, one row of 2·D² floats per pair) come on top: they grow with the visits,
-        and :meth:`_update_memo` checks them against ``row_memory_limit``."""
+        the visited pairs (``hemi_cdf``, one row of 2·D² floats and G + 1 cut points per pair) come on top: they
+        grow with the visits, and :meth:`_update_memo` checks them against ``row_memory_limit``."""
         C, B, NB = spatial_resolution ** 3, 2 * directional_resolution ** 2, 6 * normal_resolution ** 2
-        total = C * B * (8 + 8 + 8 + 8 + 4 + 4 + (4 if needs_cdf else 0))   # totals, pass sums, Q, policy, CDF
+        cuts = cut_count(B) + 1
+        total = C * B * (8 + 8 + 8 + 8 + 4 + 4)                # totals, pass sums, Q, policy
+        if needs_cdf:
+            total += 4 * C * (B + cuts)                          # CDF and its cut points
         if needs_memo or needs_hemi_cdf or needs_in_bin or needs_value:
-            total += 4 * ((6 if needs_in_bin else 5) * C * NB + (B if needs_hemi_cdf else 0)
+            total += 4 * ((6 if needs_in_bin else 5) * C * NB + ((B + cuts) if needs_hemi_cdf else 0)
                           + (5 if needs_in_bin else 2) * NB * B)   # placeholder row, cosine and in-bin tables
         return total
 
     def memory_bytes(self) -> int:
-        arrays = [self.acc_sum, self.acc_count, self.pass_targets, self.q, self.policy, self.cdf]
+        arrays = [self.acc_sum, self.acc_count, self.pass_targets, self.q, self.policy, self.cdf, self.cdf_cuts]
         if self.needs_pairs:
-            arrays += [self.visited, self.row_of, self.norm, self.bound, self.value, self.hemi_cdf,
+            arrays += [self.visited, self.row_of, self.norm, self.bound, self.value, self.hemi_cdf, self.hemi_cuts,
                        self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_scale, self.in_bin_misses,
                        self.in_bin_miss]
         return sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays if a is not None)

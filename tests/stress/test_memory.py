@@ -12,6 +12,7 @@ import pytest
 from guiding.errors import GuidingError
 from guiding.guides import PROPOSALS, RULES, SAMPLERS
 from guiding.guides.grid import GridGuide
+from guiding.guides.cdf_rows import cut_count
 from guiding.guides.grid_record import RadianceRecord, table_needs
 from guiding.methods import MEMORY_LIMIT_VARIABLE, check_method, format_size, make_guide, table_bytes
 from arrays import few
@@ -38,7 +39,8 @@ def test_planned_table_size_is_what_built_tables_report(rule, figures):
             record.update(spp_done=8)
             visited = record.memory_bytes()
             # every pair's row, in place of the placeholder row a fresh record holds
-            rows = (record.cells * record.normal_bins.count - 1) * record.bins.count * 4 if record.needs_hemi_cdf else 0
+            row = (record.bins.count + cut_count(record.bins.count) + 1) * 4     # CDF and cut points
+            rows = (record.cells * record.normal_bins.count - 1) * row if record.needs_hemi_cdf else 0
             assert planned + rows == visited, f"{sampler} ({proposal}): planned {planned} + rows {rows} bytes, " \
                                               f"all pairs visited {visited}"
     figures["configurations"] = len(SAMPLERS) * len(PROPOSALS)

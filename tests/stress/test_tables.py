@@ -4,7 +4,7 @@ A NaN, ±Inf or negative accumulator entry made a whole cell's policy NaN for th
 accumulators are never cleared) and an SD-tree's probabilities NaN; an infinite vertex count would have split the
 S-tree to depth 60. `RadianceRecord.update` (via `_sanitise`) now drops such entries and clamps Q to 1e30
 (`Q_LIMIT`), the SD-tree's `_pull` zeroes bad energies and counts; both report `dropped_entries` (and the grid
-`clamped_entries`) in each pass's statistics. The CDF rows (`_normalised_cdf`) now end at exactly 1.
+`clamped_entries`) in each pass's statistics. The CDF rows (`cdf_rows.normalised_cdf`) now end at exactly 1.
 """
 
 import numpy as np
