@@ -155,6 +155,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "rule x sampler, and learning (MAE, hit rate) at equal spp")
     validate.add_argument("--out", default="results")
     validate.add_argument("--quick", action="store_true", help="smaller budgets (a smoke run)")
+    validate.add_argument("--part", choices=("all", "refinement"), default="all",
+                          help="all checks (default), or only ours-plus's refined bins at equal spp")
     _add_backend_options(validate)
 
     baseline = commands.add_parser("sdtree-baseline", help="SD-tree baseline figures written to results/: equal-spp "
@@ -462,9 +464,16 @@ def _command_validate(args) -> None:
     import pandas as pd
 
     from .validation import (UNBIASEDNESS_METHODS, UNBIASEDNESS_SCENES, bounce_weight_table, learning_table,
-                             smooth_share_table, unbiasedness_table)
+                             refinement_table, smooth_share_table, unbiasedness_table)
 
     device = device_name(variant)
+    refinement = refinement_table(spp=32 if args.quick else 512, reference_spp=256 if args.quick else 8192)
+    write_table(refinement, out / "ours_plus_refinement", "ours-plus with (sub_resolution 8) and without (1) its "
+                "refined bins at equal spp (512 spp, seeds 0 and 1, the scales of config/paper.yaml): MAE vs a `path` "
+                "reference of 8192 spp", device, "python -m guiding validate --part refinement")
+    print(refinement.to_string(index=False))
+    if args.part == "refinement":
+        return
     budgets = {name: (scale, 6, 8) if args.quick else (scale, passes, spp)
                for name, (scale, passes, spp) in UNBIASEDNESS_SCENES.items()}
     unbiased = pd.concat([unbiasedness_table(name, budget=budget) for name, budget in budgets.items()])

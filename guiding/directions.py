@@ -54,18 +54,34 @@ class SphereBins:
 
     def index(self, d: mi.Vector3f) -> mi.UInt32:
         """Bin of world direction ``d`` (any length; the zero vector and non-finite input land in a pole bin)."""
+        return self.fine_index(d, 1)
+
+    def fine_index(self, d: mi.Vector3f, sub_resolution: int) -> mi.UInt32:
+        """``k·R² + j`` for world direction ``d`` in bin k and sub-bin j of the bin's square cut ``R × R``
+        (``R = sub_resolution``; sub-bin ``j = row·R + column``); with R = 1, the bin."""
         lower = d.z < 0
         local = safe_normalize(mi.Vector3f(d.x, d.y, dr.abs(d.z)))
         uv = mi.warp.uniform_hemisphere_to_square(local)
-        n = self.resolution
-        cell = dr.clip(mi.Vector2i(dr.floor(uv * n)), 0, n - 1)
-        return dr.select(lower, n * n, 0) + mi.UInt32(cell.y * n + cell.x)
+        n, R = self.resolution, sub_resolution
+        fine = dr.clip(mi.Vector2i(dr.floor(uv * (n * R))), 0, n * R - 1)
+        if R == 1:
+            return dr.select(lower, n * n, 0) + mi.UInt32(fine.y * n + fine.x)
+        k = dr.select(lower, n * n, 0) + mi.UInt32((fine.y // R) * n + fine.x // R)
+        return k * (R * R) + mi.UInt32((fine.y % R) * R + fine.x % R)
 
     def sample(self, k: mi.UInt32, sample: mi.Point2f) -> mi.Vector3f:
         """A direction drawn uniformly in bin ``k`` for ``sample`` ∈ [0,1)²: :meth:`direction`, kept
         :data:`EDGE_MARGIN` inside the bin's square so that :meth:`index` gives ``k`` back."""
         margin = min(EDGE_MARGIN * self.resolution, 0.5)
         return self.direction(k, dr.clip(sample, margin, 1 - margin))
+
+    def sample_sub(self, k: mi.UInt32, j: mi.UInt32, sub_resolution: int, sample: mi.Point2f) -> mi.Vector3f:
+        """A direction drawn uniformly in sub-bin ``j`` of bin ``k`` (:meth:`fine_index`) for ``sample`` ∈ [0,1)²,
+        kept :data:`EDGE_MARGIN` inside the sub-bin's square so that :meth:`fine_index` gives ``(k, j)`` back."""
+        R = sub_resolution
+        margin = min(EDGE_MARGIN * self.resolution * R, 0.5)
+        inner = dr.clip(sample, margin, 1 - margin)
+        return self.direction(k, (mi.Point2f(mi.Float(j % R), mi.Float(j // R)) + inner) / R)
 
     def direction(self, k: mi.UInt32, sample: mi.Point2f) -> mi.Vector3f:
         """The direction at position ``sample`` ∈ [0,1]² of bin ``k``'s square (uniform in solid angle)."""

@@ -55,7 +55,8 @@ def _grid(**parameters) -> Method:
 #: is ``ours`` with the paper's rejection loop (the same target, about five times the proposals; see GridGuide).
 #: ``{rule}-hemi_inv-pure`` is the paper's hemi_inv without the BSDF share of ours (heavy-tailed; not in the tables).
 #: ``ours-plus`` (beyond the paper, in progress): ``ours`` guiding every smooth reflecting BSDF, with a BSDF share of
-#: at least ``smooth_bsdf_share`` where the BSDF is not purely diffuse.
+#: at least ``smooth_bsdf_share`` where the BSDF is not purely diffuse, and its brightest bins refined into 8 × 8
+#: sub-bins (:mod:`guiding.guides.grid_refinement`).
 METHODS: dict[str, Method] = {
     "brdf": Method(".guides.bsdf", "BSDFGuide"),
     "sdtree": Method(".guides.sdtree", "SDTreeGuide", SDTreeParameters()),
@@ -65,7 +66,7 @@ METHODS: dict[str, Method] = {
     "ours-uniform-proposals": _grid(rule="sarsa", sampler="hemi_rej_plus", proposal="uniform"),
     "ours-no-rejopt": _grid(rule="sarsa", sampler="hemi_rej"),
     "ours-expected": _grid(rule="expected_sarsa", sampler="hemi_rej_plus"),
-    "ours-plus": _grid(rule="sarsa", sampler="hemi_rej_plus", guided_bsdfs="smooth"),
+    "ours-plus": _grid(rule="sarsa", sampler="hemi_rej_plus", guided_bsdfs="smooth", sub_resolution=8),
     **{f"{rule}-{sampler}": _grid(rule=rule, sampler=sampler) for rule in RULES for sampler in SAMPLERS},
     **{f"{rule}-hemi_inv-pure": _grid(rule=rule, sampler="hemi_inv", bsdf_fraction=0.0) for rule in RULES},
 }
@@ -143,7 +144,9 @@ def table_bytes(name: str) -> int | None:
 
     needs = table_needs(parameters.rule, parameters.sampler, parameters.proposal)
     return RadianceRecord.planned_bytes(parameters.spatial_resolution, parameters.directional_resolution,
-                                        parameters.normal_resolution, **needs)
+                                        parameters.normal_resolution, **needs,
+                                        sub_resolution=parameters.sub_resolution,
+                                        refine_capacity=parameters.refine_capacity)
 
 
 def check_memory(name: str, limit: int | str | None = None) -> int:

@@ -54,8 +54,8 @@ def relative_standard_error(a: np.ndarray, b: np.ndarray) -> float:
 #: relative standard error of the difference to ``path`` is about 3 % on door-ajar (a light seen only through a gap)
 #: and 0.3 % on cornell-tilted (whose normals all lie away from their normal bins' centres).
 UNBIASEDNESS_SCENES = {"door-ajar": (0.2, 24, 32), "cornell-tilted": (0.125, 48, 32)}
-#: Every rule × sampler, and ``ours`` with the paper's uniform proposals.
-UNBIASEDNESS_METHODS = [f"{rule}-{sampler}" for rule in RULES for sampler in SAMPLERS] + ["ours-uniform-proposals"]
+#: Every rule × sampler, ``ours`` with the paper's uniform proposals, and ``ours-plus`` (refined bins).
+UNBIASEDNESS_METHODS = [f"{rule}-{sampler}" for rule in RULES for sampler in SAMPLERS] + ["ours-uniform-proposals", "ours-plus"]
 
 
 def path_reference(scene: mi.Scene, passes: int, spp: int) -> np.ndarray:
@@ -131,7 +131,8 @@ def _equal_spp_rows(scene_name: str, scale: float, spp: int, reference_spp: int,
             errors = evaluate(result.image, reference.image)
             rows.append({**fields, "seed": seed, "spp": result.spp, "mae": errors["mae"], "relmse": errors["relmse"],
                          "hit_rate": result.hit_rate, "seconds": result.seconds,
-                         "update_seconds": sum(p.update_seconds for p in result.passes)})
+                         "update_seconds": sum(p.update_seconds for p in result.passes),
+                         "refined_bins": result.passes[-1].guide.get("refined_bins", 0)})
     return rows
 
 
@@ -168,3 +169,29 @@ def smooth_share_table(scenes: tuple[str, ...] = SHARE_SCENES, shares: tuple[flo
     return frame.groupby(keys, sort=False, dropna=False).agg(
         mae=("mae", "mean"), mae_std=("mae", "std"), relmse=("relmse", "mean"), hit_rate=("hit_rate", "mean"),
         seconds=("seconds", "mean"), seeds=("seed", "count")).reset_index()
+
+
+#: The scenes of the ours-plus refinement study, each at the scale of config/paper.yaml: the sun through blinds (the
+#: failure mode refinement is for), the glossy room, and the four shared scenes.
+REFINEMENT_SCENES = {"sun-blinds": 0.125, "glossy-room": 0.125, "cornell-box": 0.125, "veach-ajar": 0.0625,
+                     "staircase2": 0.0625, "living-room": 0.0625}
+
+
+def refinement_table(scenes: dict[str, float] = REFINEMENT_SCENES, spp: int = 512, reference_spp: int = 8192,
+                     seeds: tuple[int, ...] = (0, 1)) -> pd.DataFrame:
+    """``ours-plus`` with and without its refined bins (``sub_resolution`` 8 and 1) at equal spp: mean and spread over
+    ``seeds`` of the MAE, with the time and the refined entries."""
+    import pandas as pd
+
+    from .methods import METHODS
+
+    default = METHODS["ours-plus"].parameters.sub_resolution
+    rows = []
+    for scene, scale in scenes.items():
+        configurations = [({"scene": scene, "sub_resolution": resolution}, "ours-plus",
+                           {"sub_resolution": resolution}) for resolution in sorted({1, default})]
+        rows += _equal_spp_rows(scene, scale, spp, reference_spp, seeds, configurations)
+    frame = pd.DataFrame(rows)
+    return frame.groupby(["scene", "sub_resolution"], sort=False).agg(
+        mae=("mae", "mean"), mae_std=("mae", "std"), seconds=("seconds", "mean"),
+        refined_bins=("refined_bins", "max"), seeds=("seed", "count")).reset_index()

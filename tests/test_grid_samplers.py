@@ -82,3 +82,27 @@ def test_smooth_bsdf_mixture_pdf_matches_samples(sampler, proposal, bsdf_name, n
                                   test_count=len(SMOOTH_CONFIGURATIONS) * len(SMOOTH_BSDFS) * len(NORMALS),
                                   sample_count=400_000, res=64, ires=64)
     assert passed, messages
+
+
+@pytest.mark.parametrize("sub_resolution", [2, 8])
+@pytest.mark.parametrize("bsdf_name", ["diffuse", "roughplastic"])
+@pytest.mark.parametrize("normal_name", list(NORMALS))
+def test_refined_bins_pdf_matches_samples(sub_resolution, bsdf_name, normal_name):
+    """Bins refined into sub-bins (ours-plus): a sub-bin from its learned distribution, a uniform direction in it,
+    and the exact density; the sub-bins' means are random and a third of them unvisited (the bin's Q stands in)."""
+    normal = NORMALS[normal_name]
+    guide = _trained_guide("hemi_rej_plus", "bins", 16, "peaked", normal, guided_bsdfs="smooth",
+                           sub_resolution=sub_resolution)
+    refinement = guide.record_table.refinement
+    assert refinement.used == 3, "the three bright bins of the peaked cell are refined"
+    rng = np.random.default_rng(sub_resolution)
+    size = refinement.capacity * refinement.sub
+    visited = rng.random(size) > 1 / 3
+    refinement.acc_sum = mi.Float64(np.where(visited, rng.exponential(size=size) ** 4 * 100, 0))
+    refinement.acc_count = mi.Float64(visited.astype(np.float64))
+    guide.update(spp_done=150)
+    bsdf = mi.load_dict(SMOOTH_BSDFS[bsdf_name]) if bsdf_name in SMOOTH_BSDFS else None
+    adapter = GuideAdapter(guide, normal, bsdf=bsdf)
+    passed, messages = chi_square(adapter.sample_func, adapter.pdf_func, test_count=2 * 2 * len(NORMALS),
+                                  sample_count=400_000, res=64, ires=64)
+    assert passed, messages

@@ -43,6 +43,7 @@ import mitsuba as mi
 from .base import Guide, UpdateResult
 from .cdf_rows import sample_rows
 from .grid_record import IN_BIN_PROPOSALS, RadianceRecord, table_needs
+from .grid_refinement import UNREFINED
 from .parameters import (PROFILE_BSDF_PATHS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
                          with_overrides)
 from .vertex_log import NO_RECORD, VertexLog, walk_backward
@@ -134,7 +135,8 @@ class GridGuide(Guide):
         self._updates = 0
         self.record_table = RadianceRecord(
             p.spatial_resolution, p.directional_resolution, p.normal_resolution,
-            **table_needs(p.rule, p.sampler, p.proposal), min_exploration=p.min_exploration)
+            **table_needs(p.rule, p.sampler, p.proposal), min_exploration=p.min_exploration,
+            sub_resolution=p.sub_resolution, refine_share=p.refine_share, refine_capacity=p.refine_capacity)
         self.trained = False
         self._mc_log: VertexLog | None = None      # the pass's vertices (rule mc)
         self._reset_counters()
@@ -147,6 +149,7 @@ class GridGuide(Guide):
         stats = self._read_counters() if self.statistics else {}
         stats["memo_pairs"] = self.record_table.update(spp_done)
         stats.update(self.record_table.sanitised)   # bad accumulator entries dropped, Q clamped (grid_record)
+        stats.update(self.record_table.refined_stats)
         self.trained = True
         self._updates += 1
         self._reset_counters()
@@ -228,7 +231,7 @@ class GridGuide(Guide):
         world = dr.select(use_guide, guide_world, si.to_world(bs.wo))
         chosen_bin = None
         if guide_bin is not None:
-            chosen_bin = dr.select(use_guide, guide_bin, self.record_table.bins.index(world))
+            chosen_bin = dr.select(use_guide, guide_bin, self._fine_bin(world))
         pdf = self._mixture_pdf(vertex, world, bsdf_pdf, chosen_bin)
 
         weight = dr.select(pdf > 0, value / pdf, 0)
@@ -286,14 +289,23 @@ class GridGuide(Guide):
                                           vertex.bsdf_share)
         return vertex
 
+    def _fine_bin(self, world: mi.Vector3f) -> mi.UInt32:
+        """The bin of a world direction, or with refinement ``bin·R² + sub-bin``."""
+        refinement = self.record_table.refinement
+        return self.record_table.bins.fine_index(world, refinement.R if refinement else 1)
+
     def _mixture_pdf(self, vertex, world: mi.Vector3f, bsdf_pdf: mi.Float, chosen_bin=None) -> mi.Float:
         """Density of the mixture ``α·p_bsdf + (1 − α)·p_guide`` at world direction ``world``, given ``p_bsdf``.
 
-        ``chosen_bin``: the bin ``world`` was drawn in (or looked up in), whose density is reported. Looking the
-        direction up again can give a neighbour when it lies within rounding of a bin boundary, and a neighbour
-        whose CDF step is below float32 resolution would report density 0 for a direction the guide drew."""
+        ``chosen_bin``: the bin ``world`` was drawn in (or looked up in; with refinement ``bin·R² + sub-bin``),
+        whose density is reported. Looking the direction up again can give a neighbour when it lies within rounding
+        of a bin boundary, and a neighbour whose CDF step is below float32 resolution would report density 0 for a
+        direction the guide drew."""
         table = self.record_table
-        k = table.bins.index(world) if chosen_bin is None else chosen_bin
+        refinement = table.refinement
+        k = self._fine_bin(world) if chosen_bin is None else chosen_bin
+        if refinement:
+            k, sub = k // table.fine, k % table.fine
         if self.sampler.endswith("_inv"):
             share = vertex.bsdf_share
             return share * bsdf_pdf + (1 - share) * self._bin_probability(vertex, k) / table.bins.solid_angle
@@ -301,6 +313,10 @@ class GridGuide(Guide):
             miss_all = dr.gather(mi.Float, table.in_bin_miss, vertex.pair, vertex.guided)
             scale = dr.gather(mi.Float, table.in_bin_scale, table.in_bin_flat(vertex.pair, k), vertex.guided)
             accepted = scale * dr.maximum(dr.dot(world, vertex.centre), 0)
+            if refinement:
+                slot = refinement.refined(vertex.cell * table.bins.count + k, vertex.guided)
+                refined = vertex.guided & (slot != UNREFINED)
+                accepted = dr.select(refined, refinement.density(slot, sub, refined), accepted)
             guide_density = self._bin_probability(vertex, k) * accepted
         else:
             acceptance = vertex.norm / (2 * dr.pi * vertex.bound)
@@ -337,6 +353,10 @@ class GridGuide(Guide):
         if self.proposal == "bins":
             k = sample_rows(table.hemi_cdf, table.hemi_cuts, vertex.row, table.bins.count, sampler.next_1d(searching),
                             searching)
+            if table.refinement:
+                slot = table.refinement.refined(vertex.cell * table.bins.count + k, searching)
+                refined = searching & (slot != UNREFINED)
+                searching &= ~refined
             bound = dr.gather(mi.Float, table.in_bin_bound, table.in_bin_flat(vertex.pair, k), searching)
 
             def propose(sampler, active):
@@ -363,6 +383,12 @@ class GridGuide(Guide):
                                                            self.max_proposals)
         self._count("proposals", proposals, searching)
         self._count("accepted", 1, accepted)
+        if self.proposal == "bins" and table.refinement:
+            # A refined bin: its sub-bin from π, a uniform direction in it, nothing rejected.
+            sub_wo, sub = table.refinement.sample(k, slot, sampler, refined)
+            wo = dr.select(refined, sub_wo, wo)
+            accepted |= refined
+            k = k * table.fine + dr.select(refined, sub, 0)
         return wo, k, accepted
 
     @dr.syntax
@@ -405,7 +431,7 @@ class GridGuide(Guide):
         if pending | leaves:
             here = table.index(si.p, si.to_world(bs.wo))
             target = dr.mean(emitted)
-            onward = dr.mean(weight) * dr.gather(mi.Float, table.q, here, pending & continues)  # one-sample ∫ f·Q·cos
+            onward = dr.mean(weight) * dr.gather(mi.Float, table.q, table.entry(here), pending & continues)  # ∫ f·Q·cos
             known = mi.Bool(False)
             if dr.hint(self.rule == "expected_sarsa", mode="scalar"):
                 bsdf = si.bsdf()

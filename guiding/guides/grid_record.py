@@ -29,6 +29,7 @@ from ..directions import NormalBins, SphereBins
 from ..errors import GuidingError
 from .cdf_rows import cut_count, cut_points, normalised_cdf
 from .grid_cells import GridCells
+from .grid_refinement import UNREFINED as UNREFINED_SLOT, BinRefinement
 from .parameters import MIN_EXPLORATION
 
 #: Added to Q before normalising, so that no bin has zero probability (method.md §4).
@@ -108,11 +109,15 @@ class RadianceRecord:
         pair ``in_bin_miss``).
       needs_value: build V (Expected SARSA).
       min_exploration: floor of ε (0 gives the paper's schedule exactly; see MIN_EXPLORATION).
+      sub_resolution: R > 1 refines the entries holding ``refine_share`` of their cell's policy into R × R
+        sub-bins (:class:`~guiding.guides.grid_refinement.BinRefinement`, at most ``refine_capacity`` entries); record
+        indices are then ``entry·R² + sub-bin``. 1: no refinement.
     """
 
     def __init__(self, spatial_resolution: int, directional_resolution: int, normal_resolution: int = 5,
                  needs_cdf: bool = False, needs_memo: bool = False, needs_hemi_cdf: bool = False,
-                 needs_in_bin: bool = False, needs_value: bool = False, min_exploration: float = MIN_EXPLORATION):
+                 needs_in_bin: bool = False, needs_value: bool = False, min_exploration: float = MIN_EXPLORATION,
+                 sub_resolution: int = 1, refine_share: float = 0.05, refine_capacity: int = 0):
         self.grid = GridCells(spatial_resolution)
         self.S = spatial_resolution
         self.min_exploration = min_exploration
@@ -148,6 +153,10 @@ class RadianceRecord:
             self.in_bin_bound, self.in_bin_scale, self.in_bin_misses = (self._in_bin_tables() if needs_in_bin
                                                                         else (None, None, None))
             self.in_bin_miss = dr.zeros(mi.Float, C * NB) if needs_in_bin else None
+        self.refinement = (BinRefinement(self.bins, C * B, sub_resolution, refine_share, refine_capacity)
+                           if sub_resolution > 1 else None)
+        self.fine = sub_resolution * sub_resolution
+        self.refined_stats: dict[str, int] = {}
         dr.eval(self.policy, self.cdf, self.cdf_cuts)
 
     # ------------------------------------------------------------------ geometry
@@ -160,8 +169,14 @@ class RadianceRecord:
         return self.grid.cell(p)
 
     def index(self, p: mi.Point3f, d: mi.Vector3f) -> mi.UInt32:
-        """Flat (cell, bin) index of position ``p`` and world direction ``d``."""
-        return self.cell(p) * self.bins.count + self.bins.index(d)
+        """The record index of position ``p`` and world direction ``d``: the flat (cell, bin) entry, or with
+        refinement ``entry·R² + sub-bin`` (:meth:`entry` gives the entry back)."""
+        return self.cell(p) * (self.bins.count * self.fine) + self.bins.fine_index(d, self.refinement.R
+                                                                               if self.refinement else 1)
+
+    def entry(self, index: mi.UInt32) -> mi.UInt32:
+        """The (cell, bin) entry of a record index (:meth:`index`)."""
+        return index // self.fine if self.refinement else index
 
     def policy_at(self, cell: mi.UInt32, d: mi.Vector3f, active: mi.Bool = True) -> mi.Float:
         """P of world direction ``d``'s bin in ``cell``."""
@@ -245,6 +260,9 @@ class RadianceRecord:
         up to ``dr.expand_threshold()`` entries; float64 atomic adds are compare-and-swap loops on the CPU), and
         :meth:`update` folds them into the totals. Float64 sums of float32 targets come out the same in any order,
         so the learned tables, and the images, do not depend on the thread count (float32 sums did)."""
+        if self.refinement:
+            self.refinement.accumulate(index // self.fine, index % self.fine, target, active)
+            index = index // self.fine
         mode = dr.ReduceMode.Expand if dr.width(self.pass_targets) <= dr.expand_threshold() else dr.ReduceMode.Auto
         dr.scatter_reduce(dr.ReduceOp.Add, self.pass_targets, mi.Float64(target), 2 * index, active, mode=mode)
         dr.scatter_reduce(dr.ReduceOp.Add, self.pass_targets, mi.Float64(1), 2 * index + 1, active, mode=mode)
@@ -283,6 +301,8 @@ class RadianceRecord:
             self.cdf = normalised_cdf(self.policy, B)
             self.cdf_cuts = cut_points(self.cdf, B)
         dr.eval(self.q, self.policy, self.cdf, self.cdf_cuts)
+        if self.refinement:
+            self.refined_stats = self.refinement.update(self.policy, self.q)
         return self._update_memo() if self.needs_pairs else 0
 
     def _sanitise(self) -> None:
@@ -328,6 +348,8 @@ class RadianceRecord:
             if self.needs_in_bin:
                 weight = p * cos_integral
                 miss = dr.gather(mi.Float, self.in_bin_misses, nb * B + k)
+                if self.refinement:     # a refined bin draws its direction without rejection
+                    miss = dr.select(self.refinement.refined(cell * B + k, True) == UNREFINED_SLOT, miss, 0)
                 total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, B), flat // B)
                 dr.scatter(self.in_bin_miss, dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, B), pairs)
             else:
@@ -341,7 +363,8 @@ class RadianceRecord:
     @staticmethod
     def planned_bytes(spatial_resolution: int, directional_resolution: int, normal_resolution: int = 5,
                       needs_cdf: bool = False, needs_memo: bool = False, needs_hemi_cdf: bool = False,
-                      needs_in_bin: bool = False, needs_value: bool = False) -> int:
+                      needs_in_bin: bool = False, needs_value: bool = False, sub_resolution: int = 1,
+                      refine_capacity: int = 0) -> int:
         """The bytes of the tables whose size is fixed when a record is built with these arguments, computed
         without allocating anything (so that an oversized table can be refused before it is built). The CDF rows of
         the visited pairs (``hemi_cdf``, one row of 2·D² floats and G + 1 cut points per pair) come on top: they
@@ -354,6 +377,8 @@ class RadianceRecord:
         if needs_memo or needs_hemi_cdf or needs_in_bin or needs_value:
             total += 4 * ((6 if needs_in_bin else 5) * C * NB + ((B + cuts) if needs_hemi_cdf else 0)
                           + (5 if needs_in_bin else 2) * NB * B)   # placeholder row, cosine and in-bin tables
+        if sub_resolution > 1:
+            total += BinRefinement.planned_bytes(C * B, sub_resolution, refine_capacity)
         return total
 
     def memory_bytes(self) -> int:
@@ -362,4 +387,5 @@ class RadianceRecord:
             arrays += [self.visited, self.row_of, self.norm, self.bound, self.value, self.hemi_cdf, self.hemi_cuts,
                        self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_scale, self.in_bin_misses,
                        self.in_bin_miss]
-        return sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays if a is not None)
+        refined = self.refinement.memory_bytes() if self.refinement else 0
+        return refined + sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays if a is not None)

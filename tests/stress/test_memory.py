@@ -46,6 +46,24 @@ def test_planned_table_size_is_what_built_tables_report(rule, figures):
     figures["configurations"] = len(SAMPLERS) * len(PROPOSALS)
 
 
+def test_refined_bins_are_planned_and_bounded():
+    """ours-plus's refined bins (`BinRefinement`) are allocated up front: `table_bytes` plans them, the built
+    record reports them, and no update grows them however many entries ask to be refined (at S = 2, D = 3 every
+    bin holds 1/18 of its cell's policy, over the 5 % share: all 144 entries ask)."""
+    name = "ours-plus-S2-D3"
+    record = make_guide(name, refine_capacity=5).record_table
+    fresh = record.memory_bytes()
+    assert fresh <= table_bytes(name)
+    stats = []
+    for spp_done in (8, 16):
+        record.visited = record.visited + 1
+        record.update(spp_done=spp_done)
+        stats.append(record.refined_stats)
+    assert stats[-1] == {"refined_bins": 5, "refinements_refused": 139}
+    rows = (record.cells * record.normal_bins.count - 1) * (record.bins.count + cut_count(record.bins.count) + 1) * 4
+    assert record.memory_bytes() == fresh + rows     # the visited pairs' rows only: the refinement did not grow
+
+
 def test_visited_pairs_rows_over_the_limit_are_refused():
     """The per-pair CDF rows grow with the visits: an update that would build more than the memory limit leaves
     for them stops with one line naming the pairs and the bytes, rather than exhausting the machine."""
