@@ -29,6 +29,9 @@ Target directions below the true surface have f = 0 and weight 0. The target is 
                that all are rejected, is memoised per pair (``in_bin_miss``);
   ``uniform``  the paper's loop: uniform directions on the hemisphere of n_c, accepted if ``ξ·M < P·cos(ω, n_c)``;
                acceptance ``a = N/(2π·M)``, a few percent once P is peaked; ``r = (1 − a)^max_proposals``.
+With ``sub_resolution`` R > 1 (``ours-plus``), a bin drawn by the ``bins`` proposal that the record has refined
+(:mod:`~guiding.guides.grid_refinement`) gives its direction without rejection: a sub-bin from its learned
+distribution π, a uniform direction in it, density ``P_k-row probability · π_j·R²/A``; such bins add no miss share.
 Pass 0 samples the BSDF only (the tables are empty); it marks the (cell, normal bin) pairs it visits, so the
 hemisphere samplers guide from pass 1.
 """
@@ -165,6 +168,7 @@ class GridGuide(Guide):
                 "bsdf_fraction": self.bsdf_fraction, "min_bsdf_share": self.min_bsdf_share,
                 "S": table.S, "D": table.bins.resolution,
                 "bins": table.bins.count, "normal_bins": table.normal_bins.count,
+                "sub_resolution": table.refinement.R if table.refinement else 1,
                 "memory_bytes": table.memory_bytes()}
 
     def _reset_counters(self) -> None:
