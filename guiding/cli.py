@@ -467,10 +467,11 @@ def _command_validate(args) -> None:
                              refinement_table, smooth_share_table, unbiasedness_table)
 
     device = device_name(variant)
-    refinement = refinement_table(spp=32 if args.quick else 512, reference_spp=256 if args.quick else 8192)
-    write_table(refinement, out / "ours_plus_refinement", "ours-plus with (sub_resolution 8) and without (1) its "
-                "refined bins at equal spp (512 spp, seeds 0 and 1, the scales of config/paper.yaml): MAE vs a `path` "
-                "reference of 8192 spp", device, "python -m guiding validate --part refinement")
+    spp, reference_spp = (32, 256) if args.quick else (512, 8192)
+    refinement = refinement_table(spp=spp, reference_spp=reference_spp)
+    write_table(refinement, out / "ours_plus_refinement", f"ours-plus with and without (sub_resolution 1) its "
+                f"refined bins at equal spp ({spp} spp, seeds 0 and 1, the scales of config/paper.yaml): MAE vs a "
+                f"`path` reference of {reference_spp} spp", device, "python -m guiding validate --part refinement")
     print(refinement.to_string(index=False))
     if args.part == "refinement":
         return

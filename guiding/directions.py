@@ -64,9 +64,10 @@ class SphereBins:
         uv = mi.warp.uniform_hemisphere_to_square(local)
         n, R = self.resolution, sub_resolution
         fine = dr.clip(mi.Vector2i(dr.floor(uv * (n * R))), 0, n * R - 1)
+        cell = fine // R if R > 1 else fine
+        k = dr.select(lower, n * n, 0) + mi.UInt32(cell.y * n + cell.x)
         if R == 1:
-            return dr.select(lower, n * n, 0) + mi.UInt32(fine.y * n + fine.x)
-        k = dr.select(lower, n * n, 0) + mi.UInt32((fine.y // R) * n + fine.x // R)
+            return k
         return k * (R * R) + mi.UInt32((fine.y % R) * R + fine.x % R)
 
     def sample(self, k: mi.UInt32, sample: mi.Point2f) -> mi.Vector3f:

@@ -31,7 +31,8 @@ Target directions below the true surface have f = 0 and weight 0. The target is 
                acceptance ``a = N/(2π·M)``, a few percent once P is peaked; ``r = (1 − a)^max_proposals``.
 With ``sub_resolution`` R > 1 (``ours-plus``), a bin drawn by the ``bins`` proposal that the record has refined
 (:mod:`~guiding.guides.grid_refinement`) gives its direction without rejection: a sub-bin from its learned
-distribution π, a uniform direction in it, density ``P_k-row probability · π_j·R²/A``; such bins add no miss share.
+distribution π, a uniform direction in it, density within the bin ``π_j·R²/A`` (A the bin's solid angle) in place of the in-bin rejection's; such bins add no
+miss share.
 Pass 0 samples the BSDF only (the tables are empty); it marks the (cell, normal bin) pairs it visits, so the
 hemisphere samplers guide from pass 1.
 """
@@ -46,7 +47,6 @@ import mitsuba as mi
 from .base import Guide, UpdateResult
 from .cdf_rows import sample_rows
 from .grid_record import IN_BIN_PROPOSALS, RadianceRecord, table_needs
-from .grid_refinement import UNREFINED
 from .parameters import (PROFILE_BSDF_PATHS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
                          with_overrides)
 from .vertex_log import NO_RECORD, VertexLog, walk_backward
@@ -168,7 +168,7 @@ class GridGuide(Guide):
                 "bsdf_fraction": self.bsdf_fraction, "min_bsdf_share": self.min_bsdf_share,
                 "S": table.S, "D": table.bins.resolution,
                 "bins": table.bins.count, "normal_bins": table.normal_bins.count,
-                "sub_resolution": table.refinement.R if table.refinement else 1,
+                "sub_resolution": table.sub_resolution,
                 "memory_bytes": table.memory_bytes()}
 
     def _reset_counters(self) -> None:
@@ -235,7 +235,7 @@ class GridGuide(Guide):
         world = dr.select(use_guide, guide_world, si.to_world(bs.wo))
         chosen_bin = None
         if guide_bin is not None:
-            chosen_bin = dr.select(use_guide, guide_bin, self._fine_bin(world))
+            chosen_bin = dr.select(use_guide, guide_bin, self.record_table.fine_bin(world))
         pdf = self._mixture_pdf(vertex, world, bsdf_pdf, chosen_bin)
 
         weight = dr.select(pdf > 0, value / pdf, 0)
@@ -293,11 +293,6 @@ class GridGuide(Guide):
                                           vertex.bsdf_share)
         return vertex
 
-    def _fine_bin(self, world: mi.Vector3f) -> mi.UInt32:
-        """The bin of a world direction, or with refinement ``bin·R² + sub-bin``."""
-        refinement = self.record_table.refinement
-        return self.record_table.bins.fine_index(world, refinement.R if refinement else 1)
-
     def _mixture_pdf(self, vertex, world: mi.Vector3f, bsdf_pdf: mi.Float, chosen_bin=None) -> mi.Float:
         """Density of the mixture ``α·p_bsdf + (1 − α)·p_guide`` at world direction ``world``, given ``p_bsdf``.
 
@@ -307,7 +302,7 @@ class GridGuide(Guide):
         direction the guide drew."""
         table = self.record_table
         refinement = table.refinement
-        k = self._fine_bin(world) if chosen_bin is None else chosen_bin
+        k = table.fine_bin(world) if chosen_bin is None else chosen_bin
         if refinement:
             k, sub = k // table.fine, k % table.fine
         if self.sampler.endswith("_inv"):
@@ -318,8 +313,7 @@ class GridGuide(Guide):
             scale = dr.gather(mi.Float, table.in_bin_scale, table.in_bin_flat(vertex.pair, k), vertex.guided)
             accepted = scale * dr.maximum(dr.dot(world, vertex.centre), 0)
             if refinement:
-                slot = refinement.refined(vertex.cell * table.bins.count + k, vertex.guided)
-                refined = vertex.guided & (slot != UNREFINED)
+                slot, refined = refinement.lookup(vertex.cell * table.bins.count + k, vertex.guided)
                 accepted = dr.select(refined, refinement.density(slot, sub, refined), accepted)
             guide_density = self._bin_probability(vertex, k) * accepted
         else:
@@ -358,8 +352,7 @@ class GridGuide(Guide):
             k = sample_rows(table.hemi_cdf, table.hemi_cuts, vertex.row, table.bins.count, sampler.next_1d(searching),
                             searching)
             if table.refinement:
-                slot = table.refinement.refined(vertex.cell * table.bins.count + k, searching)
-                refined = searching & (slot != UNREFINED)
+                slot, refined = table.refinement.lookup(vertex.cell * table.bins.count + k, searching)
                 searching &= ~refined
             bound = dr.gather(mi.Float, table.in_bin_bound, table.in_bin_flat(vertex.pair, k), searching)
 

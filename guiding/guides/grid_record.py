@@ -29,8 +29,9 @@ from ..directions import NormalBins, SphereBins
 from ..errors import GuidingError
 from .cdf_rows import cut_count, cut_points, normalised_cdf
 from .grid_cells import GridCells
-from .grid_refinement import UNREFINED as UNREFINED_SLOT, BinRefinement
+from .grid_refinement import BinRefinement
 from .parameters import MIN_EXPLORATION
+from .pass_sums import add_target, entry_sums, pass_sums
 
 #: Added to Q before normalising, so that no bin has zero probability (method.md §4).
 Q_OFFSET = 1e-6
@@ -133,7 +134,7 @@ class RadianceRecord:
         self.row_memory_limit: int | None = None     # bytes the visited pairs' CDF rows may take (None: no limit)
         self.acc_sum = dr.zeros(mi.Float64, C * B)
         self.acc_count = dr.zeros(mi.Float64, C * B)
-        self.pass_targets = dr.zeros(mi.Float64, 2 * C * B)
+        self.pass_targets = pass_sums(C * B)
         self.q = dr.zeros(mi.Float, C * B)
         self.policy = dr.full(mi.Float, 1.0 / B, C * B)
         self.cdf = self.cdf_cuts = None
@@ -155,6 +156,7 @@ class RadianceRecord:
             self.in_bin_miss = dr.zeros(mi.Float, C * NB) if needs_in_bin else None
         self.refinement = (BinRefinement(self.bins, C * B, sub_resolution, refine_share, refine_capacity)
                            if sub_resolution > 1 else None)
+        self.sub_resolution = sub_resolution
         self.fine = sub_resolution * sub_resolution
         self.refined_stats: dict[str, int] = {}
         dr.eval(self.policy, self.cdf, self.cdf_cuts)
@@ -171,8 +173,11 @@ class RadianceRecord:
     def index(self, p: mi.Point3f, d: mi.Vector3f) -> mi.UInt32:
         """The record index of position ``p`` and world direction ``d``: the flat (cell, bin) entry, or with
         refinement ``entry·R² + sub-bin`` (:meth:`entry` gives the entry back)."""
-        return self.cell(p) * (self.bins.count * self.fine) + self.bins.fine_index(d, self.refinement.R
-                                                                               if self.refinement else 1)
+        return self.cell(p) * (self.bins.count * self.fine) + self.fine_bin(d)
+
+    def fine_bin(self, d: mi.Vector3f) -> mi.UInt32:
+        """The bin of world direction ``d``, or with refinement ``bin·R² + sub-bin``."""
+        return self.bins.fine_index(d, self.sub_resolution)
 
     def entry(self, index: mi.UInt32) -> mi.UInt32:
         """The (cell, bin) entry of a record index (:meth:`index`)."""
@@ -253,19 +258,13 @@ class RadianceRecord:
 
     # ------------------------------------------------------------------ learning
     def accumulate(self, index: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:
-        """Add ``target`` to entry ``index`` of this pass's sums (and one to its count), in the path loop.
-
-        The pass's sum and count of an entry are float64 neighbours in ``pass_targets`` (one cache line for both),
-        added without atomics where the CPU backend can give each thread a copy (``ReduceMode.Expand``, for tables
-        up to ``dr.expand_threshold()`` entries; float64 atomic adds are compare-and-swap loops on the CPU), and
-        :meth:`update` folds them into the totals. Float64 sums of float32 targets come out the same in any order,
-        so the learned tables, and the images, do not depend on the thread count (float32 sums did)."""
+        """Add ``target`` to record index ``index`` of this pass's sums (and one to its count), in the path loop
+        (:mod:`~guiding.guides.pass_sums`); :meth:`update` folds them into the totals. With refinement, the
+        entry's refined sub-bin gets it too."""
         if self.refinement:
             self.refinement.accumulate(index // self.fine, index % self.fine, target, active)
             index = index // self.fine
-        mode = dr.ReduceMode.Expand if dr.width(self.pass_targets) <= dr.expand_threshold() else dr.ReduceMode.Auto
-        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_targets, mi.Float64(target), 2 * index, active, mode=mode)
-        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_targets, mi.Float64(1), 2 * index + 1, active, mode=mode)
+        add_target(self.pass_targets, index, target, active)
 
     def totals(self):
         """The sums and visit counts of every entry as float64 NumPy arrays, this pass's targets included."""
@@ -276,11 +275,10 @@ class RadianceRecord:
 
     def _fold_pass(self) -> None:
         """Add the pass's sums and counts to the totals, and clear them for the next pass."""
-        entry = dr.arange(mi.UInt32, dr.width(self.acc_sum))
-        self.acc_sum = self.acc_sum + dr.gather(mi.Float64, self.pass_targets, 2 * entry)
-        self.acc_count = self.acc_count + dr.gather(mi.Float64, self.pass_targets, 2 * entry + 1)
+        added, visits = entry_sums(self.pass_targets, dr.arange(mi.UInt32, dr.width(self.acc_sum)))
+        self.acc_sum, self.acc_count = self.acc_sum + added, self.acc_count + visits
         dr.eval(self.acc_sum, self.acc_count)
-        self.pass_targets = dr.zeros(mi.Float64, dr.width(self.pass_targets))
+        self.pass_targets = pass_sums(dr.width(self.acc_sum))
 
     # -------------------------------------------------------------------- update
     def update(self, spp_done: int) -> int:
@@ -349,7 +347,7 @@ class RadianceRecord:
                 weight = p * cos_integral
                 miss = dr.gather(mi.Float, self.in_bin_misses, nb * B + k)
                 if self.refinement:     # a refined bin draws its direction without rejection
-                    miss = dr.select(self.refinement.refined(cell * B + k, True) == UNREFINED_SLOT, miss, 0)
+                    miss = dr.select(self.refinement.lookup(cell * B + k, True)[1], 0, miss)
                 total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, B), flat // B)
                 dr.scatter(self.in_bin_miss, dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, B), pairs)
             else:

@@ -13,7 +13,7 @@ entry, up to ``capacity`` entries; a record index with refinement is ``entry·R�
 direction), so that the learning rules hand it on like any entry.
 
 Life cycle: :meth:`BinRefinement.accumulate` in the path loop (beside the record's own sums), :meth:`update` after
-the record's policy is rebuilt; :meth:`refined` and :meth:`sample` / :meth:`density` in the samplers.
+the record's policy is rebuilt; :meth:`lookup` and :meth:`sample` / :meth:`density` in the samplers.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .cdf_rows import cut_count, cut_points, normalised_cdf, sample_rows
+from .pass_sums import add_target, entry_sums, pass_sums
 
 #: Slot of an entry that is not refined.
 UNREFINED = 0xFFFFFFFF
@@ -48,6 +49,8 @@ class BinRefinement:
     def __init__(self, bins, entries: int, resolution: int, share: float, capacity: int):
         if resolution < 2:
             raise ValueError(f"sub-bin resolution must be >= 2, got {resolution}")
+        if capacity < 1:
+            raise ValueError(f"refinement capacity must be >= 1, got {capacity}")
         if entries * resolution * resolution >= UNREFINED:
             raise ValueError(f"{entries} entries × {resolution}² sub-bins do not fit a 32-bit record index")
         self.bins, self.R, self.share, self.capacity = bins, resolution, share, capacity
@@ -61,7 +64,7 @@ class BinRefinement:
         self.entry_of = dr.zeros(mi.UInt32, capacity)
         self.acc_sum = dr.zeros(mi.Float64, size)
         self.acc_count = dr.zeros(mi.Float64, size)
-        self.pass_targets = dr.zeros(mi.Float64, 2 * size)
+        self.pass_targets = pass_sums(size)
         self.probability = dr.full(mi.Float, 1 / self.sub, size)
         self.cdf = normalised_cdf(self.probability, self.sub)
         self.cuts = cut_points(self.cdf, self.sub)
@@ -80,20 +83,17 @@ class BinRefinement:
         return sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays)
 
     # ------------------------------------------------------------------ device side
-    def refined(self, entry: mi.UInt32, active: mi.Bool) -> mi.UInt32:
-        """The slot of each (cell, bin) ``entry``, or UNREFINED."""
+    def lookup(self, entry: mi.UInt32, active: mi.Bool) -> tuple[mi.UInt32, mi.Bool]:
+        """(slot, refined) of each (cell, bin) ``entry`` among the ``active`` lanes; the slot is read only where the
+        entry is refined."""
         word = dr.gather(mi.UInt32, self.mask, entry >> 5, active)
         refined = active & (((word >> (entry & 31)) & 1) != 0)
-        return dr.select(refined, dr.gather(mi.UInt32, self.slot, entry, refined), UNREFINED)
+        return dr.gather(mi.UInt32, self.slot, entry, refined), refined
 
     def accumulate(self, entry: mi.UInt32, sub: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:
-        """Add ``target`` to sub-bin ``sub`` of refined entries (as :meth:`RadianceRecord.accumulate`)."""
-        slot = self.refined(entry, active)
-        active = active & (slot != UNREFINED)
-        index = slot * self.sub + sub
-        mode = dr.ReduceMode.Expand if dr.width(self.pass_targets) <= dr.expand_threshold() else dr.ReduceMode.Auto
-        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_targets, mi.Float64(target), 2 * index, active, mode=mode)
-        dr.scatter_reduce(dr.ReduceOp.Add, self.pass_targets, mi.Float64(1), 2 * index + 1, active, mode=mode)
+        """Add ``target`` to sub-bin ``sub`` of the refined ``entry`` lanes (as :meth:`RadianceRecord.accumulate`)."""
+        slot, refined = self.lookup(entry, active)
+        add_target(self.pass_targets, slot * self.sub + sub, target, refined)
 
     def sample(self, k: mi.UInt32, slot: mi.UInt32, sampler: mi.Sampler, active: mi.Bool) -> tuple[mi.Vector3f,
                                                                                                   mi.UInt32]:
@@ -131,8 +131,9 @@ class BinRefinement:
         if self.used == 0:
             return
         index = dr.arange(mi.UInt32, self.used * self.sub)
-        total = dr.gather(mi.Float64, self.acc_sum, index) + dr.gather(mi.Float64, self.pass_targets, 2 * index)
-        count = dr.gather(mi.Float64, self.acc_count, index) + dr.gather(mi.Float64, self.pass_targets, 2 * index + 1)
+        added, visits = entry_sums(self.pass_targets, index)
+        total = dr.gather(mi.Float64, self.acc_sum, index) + added
+        count = dr.gather(mi.Float64, self.acc_count, index) + visits
         bad = ~(dr.isfinite(total) & (total >= 0))
         dr.scatter(self.acc_sum, dr.select(bad, 0, total), index)
         dr.scatter(self.acc_count, dr.select(bad, 0, count), index)

@@ -1,0 +1,31 @@
+"""A pass's sums of learning targets: float64 (sum, count) neighbours per entry, added in the path loop and folded
+into the totals between passes. Shared by the radiance record (:mod:`~guiding.guides.grid_record`) and its refined
+sub-bins (:mod:`~guiding.guides.grid_refinement`).
+
+The sum and count of an entry are neighbours in one array (one cache line for both), added without atomics where
+the CPU backend can give each thread a copy (``ReduceMode.Expand``, for tables up to ``dr.expand_threshold()``
+entries; float64 atomic adds are compare-and-swap loops on the CPU). Float64 sums of float32 targets come out the
+same in any order, so the learned tables, and the images, do not depend on the thread count (float32 sums did).
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+
+def pass_sums(entries: int) -> mi.Float64:
+    """Empty sums and counts of ``entries`` entries."""
+    return dr.zeros(mi.Float64, 2 * entries)
+
+
+def add_target(sums: mi.Float64, index: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:
+    """Add ``target`` to entry ``index`` of ``sums``, and one to its count."""
+    mode = dr.ReduceMode.Expand if dr.width(sums) <= dr.expand_threshold() else dr.ReduceMode.Auto
+    dr.scatter_reduce(dr.ReduceOp.Add, sums, mi.Float64(target), 2 * index, active, mode=mode)
+    dr.scatter_reduce(dr.ReduceOp.Add, sums, mi.Float64(1), 2 * index + 1, active, mode=mode)
+
+
+def entry_sums(sums: mi.Float64, index: mi.UInt32) -> tuple[mi.Float64, mi.Float64]:
+    """The sum and the count of entries ``index``."""
+    return dr.gather(mi.Float64, sums, 2 * index), dr.gather(mi.Float64, sums, 2 * index + 1)
