@@ -7,11 +7,14 @@ import pytest
 
 from guiding.guides import PROPOSALS, SAMPLERS
 from guiding.guides.grid import GridGuide
+from guiding.guides.grid_refinement import REFINE_VISITS
 from guiding.testing import GuideAdapter, chi_square
 
 
-def _trained_guide(sampler: str, proposal: str, D: int, table: str, normal, **overrides) -> GridGuide:
-    """A guide whose Q in cell 0 is random: ``peaked`` (a few bright bins) or ``flat`` (within 10 %)."""
+def _trained_guide(sampler: str, proposal: str, D: int, table: str, normal, visits: float = 1,
+                   **overrides) -> GridGuide:
+    """A guide whose Q in cell 0 is random: ``peaked`` (a few bright bins) or ``flat`` (within 10 %), each entry
+    learned from ``visits`` targets."""
     guide = GridGuide(spatial_resolution=2, directional_resolution=D, rule="sarsa", sampler=sampler,
                       proposal=proposal, **overrides)
     record = guide.record_table
@@ -24,8 +27,8 @@ def _trained_guide(sampler: str, proposal: str, D: int, table: str, normal, **ov
         q[:B] += rng.uniform(0, 0.5, B)
     else:
         q[:B] = 1 + 0.1 * rng.random(B)
-    record.acc_sum = mi.Float64(q)
-    record.acc_count = mi.Float64(np.ones_like(q))
+    record.acc_sum = mi.Float64(q * visits)
+    record.acc_count = mi.Float64(np.full_like(q, visits))
     if record.needs_pairs:
         pair = record.pair(mi.UInt32(0), mi.Vector3f(normal))
         dr.scatter(record.visited, mi.UInt32(1), pair)
@@ -89,18 +92,24 @@ def test_smooth_bsdf_mixture_pdf_matches_samples(sampler, proposal, bsdf_name, n
 @pytest.mark.parametrize("normal_name", list(NORMALS))
 def test_refined_bins_pdf_matches_samples(sub_resolution, bsdf_name, normal_name):
     """Bins refined into sub-bins (ours-plus): a sub-bin from its learned distribution, a uniform direction in it,
-    and the exact density; the sub-bins' means are random and a third of them unvisited (the bin's Q stands in)."""
+    and the exact density; the sub-bins' means are random, one bright, and a third unvisited (the bin's Q stands
+    in)."""
     normal = NORMALS[normal_name]
     guide = _trained_guide("hemi_rej_plus", "bins", 16, "peaked", normal, guided_bsdfs="smooth",
-                           sub_resolution=sub_resolution)
+                           sub_resolution=sub_resolution, visits=REFINE_VISITS * sub_resolution ** 2)
     refinement = guide.record_table.refinement
     assert refinement.used == 3, "the three bright bins of the peaked cell are refined"
     rng = np.random.default_rng(sub_resolution)
     size = refinement.capacity * refinement.sub
     visited = rng.random(size) > 1 / 3
-    refinement.acc_sum = mi.Float64(np.where(visited, rng.exponential(size=size) ** 4 * 100, 0))
-    refinement.acc_count = mi.Float64(visited.astype(np.float64))
+    means = rng.exponential(size=size) ** 4 * 100
+    visited[1::refinement.sub] = True
+    means[1::refinement.sub] = 2000      # one bright sub-bin each: the refined bins are sampled from their sub-bins
+    visits = 64 * visited
+    refinement.acc_sum = mi.Float64(means * visits)
+    refinement.acc_count = mi.Float64(visits.astype(np.float64))
     guide.update(spp_done=150)
+    assert refinement.sampled_count == 3, "far from uniform: all three are sampled"
     bsdf = mi.load_dict(SMOOTH_BSDFS[bsdf_name]) if bsdf_name in SMOOTH_BSDFS else None
     adapter = GuideAdapter(guide, normal, bsdf=bsdf)
     passed, messages = chi_square(adapter.sample_func, adapter.pdf_func, test_count=2 * 2 * len(NORMALS),

@@ -313,8 +313,9 @@ class GridGuide(Guide):
             scale = dr.gather(mi.Float, table.in_bin_scale, table.in_bin_flat(vertex.pair, k), vertex.guided)
             accepted = scale * dr.maximum(dr.dot(world, vertex.centre), 0)
             if refinement:
-                slot, refined = refinement.lookup(vertex.cell * table.bins.count + k, vertex.guided)
-                accepted = dr.select(refined, refinement.density(slot, sub, refined), accepted)
+                entry = vertex.cell * table.bins.count + k
+                refined = refinement.sampled(entry, vertex.guided)
+                accepted = dr.select(refined, refinement.density(entry, sub, refined), accepted)
             guide_density = self._bin_probability(vertex, k) * accepted
         else:
             acceptance = vertex.norm / (2 * dr.pi * vertex.bound)
@@ -352,7 +353,8 @@ class GridGuide(Guide):
             k = sample_rows(table.hemi_cdf, table.hemi_cuts, vertex.row, table.bins.count, sampler.next_1d(searching),
                             searching)
             if table.refinement:
-                slot, refined = table.refinement.lookup(vertex.cell * table.bins.count + k, searching)
+                entry = vertex.cell * table.bins.count + k
+                refined = table.refinement.sampled(entry, searching)
                 searching &= ~refined
             bound = dr.gather(mi.Float, table.in_bin_bound, table.in_bin_flat(vertex.pair, k), searching)
 
@@ -382,7 +384,7 @@ class GridGuide(Guide):
         self._count("accepted", 1, accepted)
         if self.proposal == "bins" and table.refinement:
             # A refined bin: its sub-bin from π, a uniform direction in it, nothing rejected.
-            sub_wo, sub = table.refinement.sample(k, slot, sampler, refined)
+            sub_wo, sub = table.refinement.sample(k, entry, sampler.next_1d(refined), sampler.next_2d(refined), refined)
             wo = dr.select(refined, sub_wo, wo)
             accepted |= refined
             k = k * table.fine + dr.select(refined, sub, 0)

@@ -300,7 +300,7 @@ class RadianceRecord:
             self.cdf_cuts = cut_points(self.cdf, B)
         dr.eval(self.q, self.policy, self.cdf, self.cdf_cuts)
         if self.refinement:
-            self.refined_stats = self.refinement.update(self.policy, self.q)
+            self.refined_stats = self.refinement.update(self.policy, self.q, visits)
         return self._update_memo() if self.needs_pairs else 0
 
     def _sanitise(self) -> None:
@@ -347,7 +347,7 @@ class RadianceRecord:
                 weight = p * cos_integral
                 miss = dr.gather(mi.Float, self.in_bin_misses, nb * B + k)
                 if self.refinement:     # a refined bin draws its direction without rejection
-                    miss = dr.select(self.refinement.lookup(cell * B + k, True)[1], 0, miss)
+                    miss = dr.select(self.refinement.sampled(cell * B + k, True), 0, miss)
                 total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, B), flat // B)
                 dr.scatter(self.in_bin_miss, dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, B), pairs)
             else:

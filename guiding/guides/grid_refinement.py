@@ -7,13 +7,22 @@ direction cone of solid angle A/R²), whose distribution within the bin is learn
 ``π_j = (1 − ε)·(Q_j + δ)/Σ(Q_j + δ) + ε/R²``, with ``Q_j`` the mean target of sub-bin j shrunk towards the bin's Q
 (``(Σ targets + n₀·Q)/(visits + n₀)``, n₀ = :data:`PRIOR_VISITS`) and the exploration share ε = :data:`SUB_EXPLORATION`, so that no direction of the bin loses its density.
 
-The coarse record is unchanged (Q, the policy, the memo tables): a sampler that drew a refined bin draws its sub-bin
-from π and a uniform direction in it, with density ``π_j·R²/A`` within the bin. Refinement only grows, a slot per
+An entry is refined once it holds ``share`` of its cell's policy and has been visited :data:`REFINE_VISITS` times per
+sub-bin (fewer visits teach its sub-bins nothing, and a noisy Q reaches the share by chance). Its sub-bins are
+*sampled* only while they pay: while ``1 + χ² = R²·Σ π_j²`` (the factor by which drawing ∝ π rather than uniformly
+lowers the second moment of an integrand ∝ π in the bin) is at least :data:`SAMPLING_GAIN`. An entry that is still
+below it after :data:`SETTLED_VISITS` visits per sub-bin stops learning: light that fills its bin evenly (a window,
+a large lamp) gains nothing from sub-bins and would cost a lookup at every visit. Sampled and learning entries each
+have a bit mask, read at every vertex; everything else (slot, sub-bin tables) only in a branch that packets without
+a refined lane skip.
+
+The coarse record is unchanged (Q, the policy, the memo tables): a sampler that drew a sampled refined bin draws its
+sub-bin from π and a uniform direction in it, with density ``π_j·R²/A`` within the bin. Refinement only grows, a slot per
 entry, up to ``capacity`` entries; a record index with refinement is ``entry·R² + j`` (j the sub-bin of the
 direction), so that the learning rules hand it on like any entry.
 
 Life cycle: :meth:`BinRefinement.accumulate` in the path loop (beside the record's own sums), :meth:`update` after
-the record's policy is rebuilt; :meth:`lookup` and :meth:`sample` / :meth:`density` in the samplers.
+the record's policy is rebuilt; :meth:`sampled` and :meth:`sample` / :meth:`density` in the samplers.
 """
 
 from __future__ import annotations
@@ -33,6 +42,12 @@ SUB_OFFSET = 1e-6
 #: Visits of the bin's own Q that each sub-bin's mean starts from: a sub-bin seen a few times stays near its bin's Q,
 #: so that noise in few targets does not become noise in the sampling density.
 PRIOR_VISITS = 8.0
+#: Visits per sub-bin an entry must have had (in the record) before it is refined.
+REFINE_VISITS = 4
+#: Least ``1 + χ²`` of a refined entry's π against the uniform distribution for its sub-bins to be sampled.
+SAMPLING_GAIN = 1.2
+#: Visits per sub-bin (since refinement) after which an entry whose π stays below SAMPLING_GAIN stops learning.
+SETTLED_VISITS = 16
 
 
 class BinRefinement:
@@ -58,9 +73,13 @@ class BinRefinement:
         self.used = 0
         size = capacity * self.sub
         self.slot = dr.full(mi.UInt32, UNREFINED, entries)
-        # One bit per entry (a cell's 2·D² bins in one cache line at D = 16): the test at every vertex reads this
-        # small table, and only refined entries read their slot.
-        self.mask = dr.zeros(mi.UInt32, (entries + 31) // 32)
+        # One bit per entry (a cell's 2·D² bins in one cache line at D = 16), so that the test at every vertex reads
+        # a small table: the entries whose sub-bins are sampled, and those whose sub-bins still learn.
+        words = (entries + 31) // 32
+        self.sampling_mask = dr.zeros(mi.UInt32, words)
+        self.learning_mask = dr.zeros(mi.UInt32, words)
+        self.learning = dr.zeros(mi.Bool, capacity)     # per slot
+        self.sampled_count = self.settled_count = 0
         self.entry_of = dr.zeros(mi.UInt32, capacity)
         self.acc_sum = dr.zeros(mi.Float64, size)
         self.acc_count = dr.zeros(mi.Float64, size)
@@ -74,44 +93,62 @@ class BinRefinement:
     def planned_bytes(entries: int, resolution: int, capacity: int) -> int:
         """Bytes of the tables of a refinement built with these arguments (all allocated up front)."""
         sub = resolution * resolution
-        return (4 * entries + 4 * ((entries + 31) // 32) + 4 * capacity
+        return (4 * entries + 2 * 4 * ((entries + 31) // 32) + 4 * capacity + capacity
                 + capacity * (sub * (8 + 8 + 16 + 4 + 4) + 4 * (cut_count(sub) + 1)))
 
     def memory_bytes(self) -> int:
-        arrays = [self.slot, self.mask, self.entry_of, self.acc_sum, self.acc_count, self.pass_targets, self.probability,
-                  self.cdf, self.cuts]
-        return sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays)
+        arrays = [self.slot, self.sampling_mask, self.learning_mask, self.entry_of, self.acc_sum, self.acc_count,
+                  self.pass_targets, self.probability, self.cdf, self.cuts]
+        return dr.width(self.learning) + sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays)
 
     # ------------------------------------------------------------------ device side
-    def lookup(self, entry: mi.UInt32, active: mi.Bool) -> tuple[mi.UInt32, mi.Bool]:
-        """(slot, refined) of each (cell, bin) ``entry`` among the ``active`` lanes; the slot is read only where the
-        entry is refined."""
-        word = dr.gather(mi.UInt32, self.mask, entry >> 5, active)
-        refined = active & (((word >> (entry & 31)) & 1) != 0)
-        return dr.gather(mi.UInt32, self.slot, entry, refined), refined
+    @staticmethod
+    def _bit(mask: mi.UInt32, entry: mi.UInt32, active: mi.Bool) -> mi.Bool:
+        word = dr.gather(mi.UInt32, mask, entry >> 5, active)
+        return active & (((word >> (entry & 31)) & 1) != 0)
 
+    def sampled(self, entry: mi.UInt32, active: mi.Bool) -> mi.Bool:
+        """Whether each (cell, bin) ``entry`` among the ``active`` lanes is drawn from its sub-bins."""
+        return self._bit(self.sampling_mask, entry, active)
+
+    @dr.syntax
     def accumulate(self, entry: mi.UInt32, sub: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:
-        """Add ``target`` to sub-bin ``sub`` of the refined ``entry`` lanes (as :meth:`RadianceRecord.accumulate`)."""
-        slot, refined = self.lookup(entry, active)
-        add_target(self.pass_targets, slot * self.sub + sub, target, refined)
+        """Add ``target`` to sub-bin ``sub`` of the learning ``entry`` lanes (as :meth:`RadianceRecord.accumulate`)."""
+        learning = self._bit(self.learning_mask, entry, active)
+        if learning:
+            slot = dr.gather(mi.UInt32, self.slot, entry, learning)
+            add_target(self.pass_targets, slot * self.sub + sub, target, learning)
 
-    def sample(self, k: mi.UInt32, slot: mi.UInt32, sampler: mi.Sampler, active: mi.Bool) -> tuple[mi.Vector3f,
-                                                                                                  mi.UInt32]:
-        """A sub-bin of refined bin ``k`` (its ``slot``) drawn from π, and a uniform direction in it: (world
-        direction, sub-bin)."""
-        j = sample_rows(self.cdf, self.cuts, slot, self.sub, sampler.next_1d(active), active)
-        return self.bins.sample_sub(k, j, self.R, sampler.next_2d(active)), j
+    @dr.syntax
+    def sample(self, k: mi.UInt32, entry: mi.UInt32, u: mi.Float, square: mi.Point2f,
+               active: mi.Bool) -> tuple[mi.Vector3f, mi.UInt32]:
+        """For the sampled ``entry`` lanes (bin ``k`` of their cell): a sub-bin drawn from π with ``u``, and a uniform
+        direction in it from ``square``: (world direction, sub-bin)."""
+        direction = mi.Vector3f(0, 0, 1)
+        j = mi.UInt32(0)
+        if active:
+            slot = dr.gather(mi.UInt32, self.slot, entry, active)
+            j = sample_rows(self.cdf, self.cuts, slot, self.sub, u, active)
+            direction = self.bins.sample_sub(k, j, self.R, square)
+        return direction, j
 
-    def density(self, slot: mi.UInt32, sub: mi.UInt32, active: mi.Bool) -> mi.Float:
-        """Density (solid angle) within a refined bin of its sub-bin ``sub``: ``π_j·R²/A``."""
-        return dr.gather(mi.Float, self.probability, slot * self.sub + sub, active) * (self.sub / self.bins.solid_angle)
+    @dr.syntax
+    def density(self, entry: mi.UInt32, sub: mi.UInt32, active: mi.Bool) -> mi.Float:
+        """Density (solid angle) within a sampled refined bin of its sub-bin ``sub``: ``π_j·R²/A``."""
+        value = mi.Float(0)
+        if active:
+            slot = dr.gather(mi.UInt32, self.slot, entry, active)
+            value = dr.gather(mi.Float, self.probability, slot * self.sub + sub, active) * (self.sub / self.bins.solid_angle)
+        return value
 
     # -------------------------------------------------------------------- host side
-    def update(self, policy: mi.Float, q: mi.Float) -> dict:
-        """Fold the pass's targets in, refine the entries whose ``policy`` reached the share (while slots last),
-        and rebuild π for every refined entry from its sub-bins' means (the bin's ``q`` where unvisited)."""
+    def update(self, policy: mi.Float, q: mi.Float, visits: mi.Float64) -> dict:
+        """Fold the pass's targets in, refine the entries whose ``policy`` reached the share after enough ``visits``
+        (while slots last), rebuild π for every refined entry from its sub-bins' means (the bin's ``q`` where
+        unvisited), and decide which are sampled and which still learn."""
         self._fold_pass()
-        candidates = dr.compress((policy >= self.share) & (self.slot == UNREFINED))
+        candidates = dr.compress((policy >= self.share) & (visits >= REFINE_VISITS * self.sub)
+                                 & (self.slot == UNREFINED))
         wanted = dr.width(candidates)
         added = min(wanted, self.capacity - self.used)
         if added > 0:
@@ -119,11 +156,35 @@ class BinRefinement:
             slots = dr.arange(mi.UInt32, added) + self.used
             dr.scatter(self.slot, slots, chosen)
             dr.scatter(self.entry_of, chosen, slots)
-            dr.scatter_reduce(dr.ReduceOp.Or, self.mask, mi.UInt32(1) << (chosen & 31), chosen >> 5)
+            dr.scatter(self.learning, True, slots)
             self.used += added
         if self.used > 0:
             self._rebuild(q)
-        return {"refined_bins": self.used, "refinements_refused": wanted - added}
+            self._classify()
+        return {"refined_bins": self.used, "refinements_refused": wanted - added,
+                "sampled_refined_bins": self.sampled_count, "settled_refined_bins": self.settled_count}
+
+    def _classify(self) -> None:
+        """The masks: entries sampled from their sub-bins (gain ≥ SAMPLING_GAIN), entries still learning (sampled,
+        or below SETTLED_VISITS); an entry that settles below the gain stays settled."""
+        flat = dr.arange(mi.UInt32, self.used * self.sub)
+        gain = dr.block_reduce(dr.ReduceOp.Add, dr.square(dr.gather(mi.Float, self.probability, flat)), self.sub) * self.sub
+        visits = dr.block_reduce(dr.ReduceOp.Add, dr.gather(mi.Float64, self.acc_count, flat), self.sub)
+        slots = dr.arange(mi.UInt32, self.used)
+        sampled = gain >= SAMPLING_GAIN
+        learning = dr.gather(mi.Bool, self.learning, slots) & (sampled | (visits < SETTLED_VISITS * self.sub))
+        dr.scatter(self.learning, learning, slots)
+        entries = dr.gather(mi.UInt32, self.entry_of, slots)
+        self.sampling_mask, self.learning_mask = (self._mask(entries, members) for members in (sampled, learning))
+        dr.eval(self.learning, self.sampling_mask, self.learning_mask)
+        self.sampled_count = int(dr.count(sampled)[0])
+        self.settled_count = self.used - int(dr.count(learning)[0])
+
+    def _mask(self, entries: mi.UInt32, members: mi.Bool) -> mi.UInt32:
+        """The bit mask of the ``entries`` that are ``members``."""
+        mask = dr.zeros(mi.UInt32, dr.width(self.sampling_mask))
+        dr.scatter_reduce(dr.ReduceOp.Or, mask, mi.UInt32(1) << (entries & 31), entries >> 5, members)
+        return mask
 
     def _fold_pass(self) -> None:
         """Add the pass's sums of the refined entries' sub-bins (the first ``used`` slots) to the totals, dropping
