@@ -97,9 +97,10 @@ class GridParameters:
       guided_bsdfs: ``diffuse`` (default, the paper's) or ``smooth`` (:data:`GUIDED_BSDFS`).
       smooth_bsdf_share: least BSDF share at guided vertices whose BSDF is not purely diffuse (default 0.5, the
         SD-tree's mixture): the guide knows nothing of a glossy lobe, the BSDF's sampling covers it.
-      sub_resolution: R > 1 cuts each bin that holds at least ``refine_share`` of its cell's policy into R × R
-        equal-area sub-bins whose distribution is learned too (:mod:`~guiding.guides.grid_refinement`; ``bins``
-        proposal only); default 1, no refinement.
+      sub_resolution: R > 1 cuts each bin that holds at least ``refine_share`` of its cell's policy (once visited
+        often enough) into R × R equal-area sub-bins whose distribution is learned too, and sampled where it is far
+        enough from uniform (:mod:`~guiding.guides.grid_refinement`; ``bins`` proposal only); default 1, no
+        refinement.
       refine_share: least policy share of a refined (cell, bin) entry (default 0.05, 25× a uniform bin's at D = 16).
       refine_capacity: most entries refined (default 4096; their tables are allocated up front).
       statistics: count, per pass, guided vertices, invalid samples, rejection proposals and acceptances (default
