@@ -8,7 +8,7 @@ from guiding.directions import SphereBins
 from guiding.guides.grid_refinement import REFINE_VISITS, SAMPLING_GAIN, SETTLED_VISITS, BinRefinement
 
 R = 4
-ENTRIES = 2 * 8       # one cell of 2·2² bins... and a second cell
+ENTRIES = 2 * 8       # two cells of 2·2² bins
 CONCENTRATED, EVEN, RARE = 0, 1, 2
 
 

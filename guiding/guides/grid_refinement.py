@@ -75,10 +75,9 @@ class BinRefinement:
         self.slot = dr.full(mi.UInt32, UNREFINED, entries)
         # One bit per entry (a cell's 2·D² bins in one cache line at D = 16), so that the test at every vertex reads
         # a small table: the entries whose sub-bins are sampled, and those whose sub-bins still learn.
-        words = (entries + 31) // 32
-        self.sampling_mask = dr.zeros(mi.UInt32, words)
-        self.learning_mask = dr.zeros(mi.UInt32, words)
-        self.learning = dr.zeros(mi.Bool, capacity)     # per slot
+        self.words = (entries + 31) // 32
+        self.sampling_mask = dr.zeros(mi.UInt32, self.words)
+        self.learning_mask = dr.zeros(mi.UInt32, self.words)
         self.sampled_count = self.settled_count = 0
         self.entry_of = dr.zeros(mi.UInt32, capacity)
         self.acc_sum = dr.zeros(mi.Float64, size)
@@ -93,13 +92,13 @@ class BinRefinement:
     def planned_bytes(entries: int, resolution: int, capacity: int) -> int:
         """Bytes of the tables of a refinement built with these arguments (all allocated up front)."""
         sub = resolution * resolution
-        return (4 * entries + 2 * 4 * ((entries + 31) // 32) + 4 * capacity + capacity
+        return (4 * entries + 2 * 4 * ((entries + 31) // 32) + 4 * capacity
                 + capacity * (sub * (8 + 8 + 16 + 4 + 4) + 4 * (cut_count(sub) + 1)))
 
     def memory_bytes(self) -> int:
         arrays = [self.slot, self.sampling_mask, self.learning_mask, self.entry_of, self.acc_sum, self.acc_count,
                   self.pass_targets, self.probability, self.cdf, self.cuts]
-        return dr.width(self.learning) + sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays)
+        return sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays)
 
     # ------------------------------------------------------------------ device side
     @staticmethod
@@ -138,7 +137,8 @@ class BinRefinement:
         value = mi.Float(0)
         if active:
             slot = dr.gather(mi.UInt32, self.slot, entry, active)
-            value = dr.gather(mi.Float, self.probability, slot * self.sub + sub, active) * (self.sub / self.bins.solid_angle)
+            value = dr.gather(mi.Float, self.probability, slot * self.sub + sub, active)
+            value *= self.sub / self.bins.solid_angle
         return value
 
     # -------------------------------------------------------------------- host side
@@ -156,7 +156,7 @@ class BinRefinement:
             slots = dr.arange(mi.UInt32, added) + self.used
             dr.scatter(self.slot, slots, chosen)
             dr.scatter(self.entry_of, chosen, slots)
-            dr.scatter(self.learning, True, slots)
+            self.learning_mask |= self._mask(chosen, True)     # a new entry learns
             self.used += added
         if self.used > 0:
             self._rebuild(q)
@@ -168,21 +168,20 @@ class BinRefinement:
         """The masks: entries sampled from their sub-bins (gain ≥ SAMPLING_GAIN), entries still learning (sampled,
         or below SETTLED_VISITS); an entry that settles below the gain stays settled."""
         flat = dr.arange(mi.UInt32, self.used * self.sub)
-        gain = dr.block_reduce(dr.ReduceOp.Add, dr.square(dr.gather(mi.Float, self.probability, flat)), self.sub) * self.sub
+        squares = dr.square(dr.gather(mi.Float, self.probability, flat))
+        gain = dr.block_reduce(dr.ReduceOp.Add, squares, self.sub) * self.sub
         visits = dr.block_reduce(dr.ReduceOp.Add, dr.gather(mi.Float64, self.acc_count, flat), self.sub)
-        slots = dr.arange(mi.UInt32, self.used)
+        entries = dr.gather(mi.UInt32, self.entry_of, dr.arange(mi.UInt32, self.used))
         sampled = gain >= SAMPLING_GAIN
-        learning = dr.gather(mi.Bool, self.learning, slots) & (sampled | (visits < SETTLED_VISITS * self.sub))
-        dr.scatter(self.learning, learning, slots)
-        entries = dr.gather(mi.UInt32, self.entry_of, slots)
-        self.sampling_mask, self.learning_mask = (self._mask(entries, members) for members in (sampled, learning))
-        dr.eval(self.learning, self.sampling_mask, self.learning_mask)
+        learning = self._bit(self.learning_mask, entries, True) & (sampled | (visits < SETTLED_VISITS * self.sub))
+        self.sampling_mask, self.learning_mask = self._mask(entries, sampled), self._mask(entries, learning)
+        dr.eval(self.sampling_mask, self.learning_mask)
         self.sampled_count = int(dr.count(sampled)[0])
         self.settled_count = self.used - int(dr.count(learning)[0])
 
     def _mask(self, entries: mi.UInt32, members: mi.Bool) -> mi.UInt32:
         """The bit mask of the ``entries`` that are ``members``."""
-        mask = dr.zeros(mi.UInt32, dr.width(self.sampling_mask))
+        mask = dr.zeros(mi.UInt32, self.words)
         dr.scatter_reduce(dr.ReduceOp.Or, mask, mi.UInt32(1) << (entries & 31), entries >> 5, members)
         return mask
 
