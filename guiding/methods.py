@@ -66,7 +66,8 @@ METHODS: dict[str, Method] = {
     "ours-uniform-proposals": _grid(rule="sarsa", sampler="hemi_rej_plus", proposal="uniform"),
     "ours-no-rejopt": _grid(rule="sarsa", sampler="hemi_rej"),
     "ours-expected": _grid(rule="expected_sarsa", sampler="hemi_rej_plus"),
-    "ours-plus": _grid(rule="sarsa", sampler="hemi_rej_plus", guided_bsdfs="smooth", sub_resolution=8),
+    "ours-plus": _grid(rule="sarsa", sampler="hemi_rej_plus", guided_bsdfs="smooth", sub_resolution=8,
+                       rebuild_growth=0.25),
     **{f"{rule}-{sampler}": _grid(rule=rule, sampler=sampler) for rule in RULES for sampler in SAMPLERS},
     **{f"{rule}-hemi_inv-pure": _grid(rule=rule, sampler="hemi_inv", bsdf_fraction=0.0) for rule in RULES},
 }

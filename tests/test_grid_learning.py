@@ -163,3 +163,29 @@ def test_statistics_counters_only_when_asked_for(cornell):
         assert (guide.counters == {}) == (not statistics)
         if statistics:
             assert stats["guided_samples"] > 0
+
+
+def test_rebuild_growth_rebuilds_geometrically_and_keeps_every_target():
+    """With ``rebuild_growth`` g the record is rebuilt once the spp since its last rebuild reach g × its spp then;
+    the targets of the passes in between are folded in at the next rebuild, none lost."""
+    guide = GridGuide(spatial_resolution=1, directional_resolution=1, rule="sarsa", sampler="sphere_inv",
+                      rebuild_growth=0.5)
+    record = guide.record_table
+    rebuilt = []
+    for spp_done in range(8, 89, 8):
+        record.accumulate(mi.UInt32(0), mi.Float(spp_done), mi.Bool(True))
+        stats = guide.update(spp_done).stats
+        rebuilt.append(spp_done) if stats["rebuilt"] else None
+        assert stats["memo_pairs"] == 0
+    assert rebuilt == [8, 16, 24, 40, 64]
+    # Q is the mean of the targets up to the last rebuild (8 … 64); those of 72 … 88 wait in the pass's sums.
+    assert record.q.numpy()[0] == pytest.approx(np.mean(np.arange(8, 65, 8)))
+    sums, counts = record.totals()
+    assert counts[0] == 11 and sums[0] == pytest.approx(np.arange(8, 89, 8).sum())
+
+
+def test_ours_plus_rebuilds_less_often_than_the_paper():
+    from guiding.methods import make_guide
+
+    assert make_guide("ours").rebuild_growth == 0
+    assert make_guide("ours-plus").rebuild_growth > 0

@@ -136,6 +136,9 @@ class GridGuide(Guide):
         self._stage = PROFILE_STAGES.index(p.profile_stage) if p.profile_stage in PROFILE_STAGES else len(PROFILE_STAGES)
         self._bsdf_paths = p.profile_stage == PROFILE_BSDF_PATHS
         self._updates = 0
+        self.rebuild_growth = p.rebuild_growth
+        self._rebuilt_at = 0           # spp done at the record's last rebuild
+        self._table_stats = {}         # memo pairs and refinement figures of the last rebuild
         self.record_table = RadianceRecord(
             p.spatial_resolution, p.directional_resolution, p.normal_resolution,
             **table_needs(p.rule, p.sampler, p.proposal), min_exploration=p.min_exploration,
@@ -150,9 +153,14 @@ class GridGuide(Guide):
 
     def update(self, spp_done: int) -> UpdateResult:
         stats = self._read_counters() if self.statistics else {}
-        stats["memo_pairs"] = self.record_table.update(spp_done)
-        stats.update(self.record_table.sanitised)   # bad accumulator entries dropped, Q clamped (grid_record)
-        stats.update(self.record_table.refined_stats)
+        if self.trained and spp_done - self._rebuilt_at < self.rebuild_growth * self._rebuilt_at:
+            stats.update(self._table_stats, rebuilt=False)     # the tables of the last rebuild, still in use
+        else:
+            table = self.record_table
+            self._table_stats = {"memo_pairs": table.update(spp_done), **table.refined_stats}
+            self._rebuilt_at = spp_done
+            # With the entries the rebuild dropped or clamped (grid_record's sanitising).
+            stats.update(self._table_stats, **table.sanitised, rebuilt=True)
         self.trained = True
         self._updates += 1
         self._reset_counters()

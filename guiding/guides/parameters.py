@@ -103,6 +103,10 @@ class GridParameters:
         refinement.
       refine_share: least policy share of a refined (cell, bin) entry (default 0.05, 25× a uniform bin's at D = 16).
       refine_capacity: most entries refined (default 4096; their tables are allocated up front).
+      rebuild_growth: g ≥ 0: the record is rebuilt (Q, policy, memo tables, refinement) after a pass only once the
+        spp since its last rebuild reach g × the spp at that rebuild, and after every pass while they are fewer
+        than 1/g passes; the targets of the passes in between are kept and folded in at the next rebuild. Default 0:
+        after every pass (the paper's).
       statistics: count, per pass, guided vertices, invalid samples, rejection proposals and acceptances (default
         False). The counters are atomics on 1-element arrays, several per bounce (measured: ``ours`` 301 against
         237 ms/spp without them on cornell-box at scale 0.25); they are traced only when on, and only then does
@@ -127,6 +131,7 @@ class GridParameters:
     sub_resolution: int = 1
     refine_share: float = 0.05
     refine_capacity: int = 4096
+    rebuild_growth: float = 0.0
     statistics: bool = False
     profile_stage: str | None = None
 
@@ -153,6 +158,7 @@ class GridParameters:
                f"sub_resolution > 1 refines the bins proposal of the rejection samplers, not {self.sampler} "
                f"({self.proposal})")
         _check(0 < self.refine_share <= 1, f"refine_share must be in (0, 1], got {self.refine_share}")
+        _check(self.rebuild_growth >= 0, f"rebuild_growth must be >= 0, got {self.rebuild_growth}")
         _check(self.refine_capacity >= 1, f"refine_capacity must be >= 1, got {self.refine_capacity}")
         _check(self.profile_stage in (None, *PROFILE_STAGES, PROFILE_BSDF_PATHS),
                f"unknown profile stage '{self.profile_stage}' (choose from "
