@@ -232,6 +232,44 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
     return pd.DataFrame(rows), pd.DataFrame(breakdown_rows)
 
 
+def pass_schedule_table(scenes: list[tuple[str, float]], methods: list[str], spp: int = 512, rounds: int = 2,
+                        max_depth: int = 16) -> pd.DataFrame:
+    """Per scene and method: the counted seconds (render and update, compilation excluded) of a render of ``spp``
+    spp with fixed passes of 8 spp and with growing passes (:mod:`guiding.pass_schedule`), the two renders
+    alternating, ``rounds`` times (medians); their ratio, and each mode's cost per spp over ``brdf``'s in the same
+    mode (what decides an equal-time comparison)."""
+    from .integrator import GuidedPathIntegrator
+    from .methods import make_guide
+    from .render import Budget, render
+    from .scenes import load_scene
+
+    props = mi.Properties()
+    props["max_depth"] = max_depth
+    rows = []
+    for number, (name, scale) in enumerate(scenes, 1):
+        print(f"bench: scene {number}/{len(scenes)} {name} (scale {scale:g}): {', '.join(methods)}, {rounds} "
+              f"rounds of {spp} spp with fixed and with growing passes", file=sys.stderr, flush=True)
+        scene = load_scene(name, scale)
+        for method in methods:
+            seconds, passes = {False: [], True: []}, {}
+            for index in range(rounds):
+                for growing in (False, True):
+                    result = render(scene, GuidedPathIntegrator(props, guide=make_guide(method)),
+                                    Budget(spp=spp, growing_passes=growing), seed=index, progress=False)
+                    seconds[growing].append(result.counted_seconds())
+                    passes[growing] = len(result.passes)
+            fixed, growing = float(np.median(seconds[False])), float(np.median(seconds[True]))
+            rows.append({"scene": name, "resolution": _resolution(scene), "method": method,
+                         "passes_fixed": passes[False], "passes_growing": passes[True],
+                         "ms_per_spp_fixed": 1e3 * fixed / spp, "ms_per_spp_growing": 1e3 * growing / spp,
+                         "speed_up": fixed / growing})
+    frame = pd.DataFrame(rows)
+    brdf = frame[frame["method"] == "brdf"].set_index("scene")
+    for mode in ("fixed", "growing"):
+        frame[f"ratio_to_brdf_{mode}"] = frame[f"ms_per_spp_{mode}"] / frame["scene"].map(brdf[f"ms_per_spp_{mode}"])
+    return frame
+
+
 #: Issue targets: (what, method, column, bound, applies on the GPU only / CPU only / both).
 TARGETS = [
     ("`ours` ≤ 1.2× `brdf` per spp (CPU)", "ours", "ratio_to_brdf", 1.2, "cpu"),

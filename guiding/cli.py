@@ -31,6 +31,11 @@ BENCH_SCENES = ("cornell-box", "veach-ajar", "staircase2", "living-room")
 BENCH_EXTRA_SCENES = ("glossy-box:1",)
 #: The paper's hemi_inv without the BSDF share, shown beside ours in the single-bounce weight table.
 PURE_HEMI_INV = ("mc-hemi_inv-pure", "sarsa-hemi_inv-pure", "expected_sarsa-hemi_inv-pure")
+#: What ``bench --part pass-schedule`` times by default: the methods whose passes differ (``ours`` keeps the paper's
+#: update after every pass), on the scenes and scales of ``config/paper.yaml``'s equal-time experiment.
+PASS_SCHEDULE_METHODS = ("brdf", "ours", "ours-plus", "sdtree")
+PASS_SCHEDULE_SCENES = ("cornell-box:0.125", "veach-ajar:0.0625", "staircase2:0.0625", "living-room:0.0625",
+                        "glossy-room:0.125", "sun-blinds:0.125")
 BENCH_METHODS = ("ours", "ours-uniform-proposals", "ours-no-rejopt", "ours-expected", "sarsa-sphere_inv",
                  "sarsa-hemi_inv", "sdtree", "quadtree-grid")
 
@@ -78,7 +83,9 @@ def _add_scene_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", type=_positive_float, default=1.0, help="resolution scale (default 1)")
     parser.add_argument("--scene-dir", action="append", default=[], help="extra scene folder (repeatable)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--pass-spp", type=_positive_int, default=8, help="samples per pixel per pass (default 8)")
+    parser.add_argument("--pass-spp", type=_positive_int, default=8,
+                        help="samples per pixel of the first passes; later ones grow to pass_spp*2^k up to the "
+                        "guide's next update (default 8)")
     parser.add_argument("--max-depth", type=_positive_int, default=16)
     parser.add_argument("--out", required=True, help="output folder (image.exr, preview.png, stats.json)")
     parser.add_argument("--quiet", action="store_true", help="no progress display")
@@ -96,6 +103,8 @@ def build_parser() -> argparse.ArgumentParser:
     budget.add_argument("--seconds", type=_positive_float, help="time budget in seconds")
     render.add_argument("--exclude-passes", type=int, default=0,
                         help="leading passes not counted against a seconds budget (default 0)")
+    render.add_argument("--fixed-passes", action="store_true",
+                        help="every pass has --pass-spp spp (by default later passes grow where the guide allows)")
     render.add_argument("--combine", choices=["last", "automatic", "inverse-variance"], default=None,
                         help="final image of a guide with iterations (sdtree): the last iteration, the last one "
                         "with training stopped by the variance, or the last four weighted by their inverse variance "
@@ -131,13 +140,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = commands.add_parser("bench", help="cost per spp of every method vs `brdf` and Mitsuba's `path` "
                                 "(same process, interleaved passes)")
-    bench.add_argument("--scenes", default=",".join([*(f"{s}:0.25" for s in BENCH_SCENES), *BENCH_EXTRA_SCENES]),
-                       help="comma-separated NAME:SCALE list (default: the four shared scenes at 1/4 resolution and "
-                            "glossy-box, the scene without a guidable surface)")
+    bench.add_argument("--part", choices=["cost", "pass-schedule"], default="cost",
+                       help="cost: cost per spp and its breakdown (default); pass-schedule: renders with fixed and "
+                       "with growing passes (results/pass_schedule)")
+    bench.add_argument("--scenes", help="comma-separated NAME:SCALE list (default: cost: the four shared scenes at 1/4 "
+                       "resolution and glossy-box, the scene without a guidable surface; pass-schedule: those of "
+                       "config/paper.yaml's equal-time experiment)")
     bench.add_argument("--passes", type=_positive_int, default=8, help="timed passes per integrator (default 8)")
-    bench.add_argument("--methods", default=",".join(BENCH_METHODS),
-                       help="methods timed against brdf and path (comma-separated)")
-    bench.add_argument("--out", default="results/bench", help="output folder (default results/bench)")
+    bench.add_argument("--methods", help="methods timed against brdf (comma-separated; default: cost: every kind, "
+                       "pass-schedule: brdf, ours, ours-plus, sdtree)")
+    bench.add_argument("--out", help="output folder (default results/bench, results/pass_schedule)")
     bench.add_argument("--no-breakdown", action="store_true",
                        help="skip the cost breakdown (the guided methods' stages, results/bench/cost_breakdown.md)")
     _add_backend_options(bench)
@@ -299,7 +311,8 @@ def _command_render(args) -> None:
     from .render import Budget
     from .scenes import find_scene
 
-    budget = Budget(spp=args.spp, seconds=args.seconds, pass_spp=args.pass_spp, exclude_passes=args.exclude_passes)
+    budget = Budget(spp=args.spp, seconds=args.seconds, pass_spp=args.pass_spp, exclude_passes=args.exclude_passes,
+                    growing_passes=not args.fixed_passes)
     find_scene(args.scene, args.scene_dir)
     check_method(args.method, args.memory_limit)
     variant = set_variant(args.variant, args.threads)
@@ -387,6 +400,11 @@ def _command_bench(args) -> None:
     from .backend import set_variant
     from .scenes import find_scene
 
+    schedule = args.part == "pass-schedule"
+    args.scenes = args.scenes or ",".join(PASS_SCHEDULE_SCENES if schedule else
+                                          [*(f"{s}:0.25" for s in BENCH_SCENES), *BENCH_EXTRA_SCENES])
+    args.methods = args.methods or ",".join(PASS_SCHEDULE_METHODS if schedule else BENCH_METHODS)
+    args.out = args.out or ("results/pass_schedule" if schedule else "results/bench")
     scenes = _parse_scene_list(args.scenes)
     for name, _ in scenes:
         find_scene(name)
@@ -396,10 +414,17 @@ def _command_bench(args) -> None:
         check_method(method)
     variant = set_variant(args.variant, args.threads)
     out = _prepare_output_dir(args.out)
-    from .bench import benchmark, target_table, write_table
+    from .bench import benchmark, pass_schedule_table, target_table, write_table
 
     device = device_name(variant)
     tag = "gpu" if variant.startswith("cuda") else "cpu"
+    if schedule:
+        frame = pass_schedule_table(scenes, [m for m in args.methods.split(",") if m])
+        write_table(frame, out / f"pass_schedule_{tag}", "Fixed against growing passes: counted seconds of 512-spp "
+                    "renders (render + update, compilation excluded; medians of 2 alternating rounds)", device,
+                    f"python -m guiding bench --part pass-schedule --scenes {args.scenes} --methods {args.methods}")
+        print(frame.to_string(index=False))
+        return
     frame, breakdown = benchmark(scenes, [m for m in args.methods.split(",") if m], passes=args.passes,
                                  breakdown=not args.no_breakdown)
     command = (f"python -m guiding bench --scenes {args.scenes} --methods {args.methods} --passes {args.passes}"

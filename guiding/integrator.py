@@ -7,8 +7,8 @@ continuation probability ``q = max(max_rgb(β), rr_min)``.
 
 Usable from XML (``<integrator type="guided_path"><string name="method" value="ours"/></integrator>``), from
 ``mi.load_dict({'type': 'guided_path', ...})``, or built in Python with an explicit guide object. ``mi.render``
-trains the guide: it runs the progressive passes of :func:`guiding.render.render` (``pass_spp`` each, the guide
-updated in between) and returns their image.
+trains the guide: it runs the progressive passes of :func:`guiding.render.render` (``pass_spp`` and growing, the
+guide updated in between) and returns their image.
 """
 
 from __future__ import annotations
@@ -28,7 +28,9 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
       ``rr_depth`` (int, 8): depth from which Russian roulette may end a path.
       ``rr_min`` (float, 0.05): lower bound of the continuation probability ``q = max(max_rgb(β), rr_min)``.
       ``method`` (str, "brdf"): a method name of :mod:`guiding.methods`; ignored when a guide is passed.
-      ``pass_spp`` (int, 8): samples per pixel of each pass of ``mi.render``; the guide updates between passes.
+      ``pass_spp`` (int, 8): samples per pixel of the first passes of ``mi.render``; the guide updates between
+        passes, and later passes grow to ``pass_spp·2^k`` up to its next update (:mod:`guiding.pass_schedule`).
+      ``growing_passes`` (bool, true): false keeps every pass at ``pass_spp``.
       ``seconds`` (float, 0): when positive, ``mi.render`` renders for this many seconds instead of ``spp``.
       ``statistics`` (bool, false): grid methods only: the guide counts guided vertices, proposals and acceptances
         per pass (``guided_samples``, ``acceptance_rate``, … in the pass statistics; off by default, they cost
@@ -48,6 +50,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         self.rr_min = props.get("rr_min", 0.05)
         self.pass_spp = props.get("pass_spp", 8)
         self.seconds = props.get("seconds", 0.0)
+        self.growing_passes = props.get("growing_passes", True)
         if self.max_depth < 1:
             raise ValueError(f"max_depth must be >= 1, got {self.max_depth}")
         if self.pass_spp < 1:
@@ -73,9 +76,10 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
                              "not supported")
         sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         if self.seconds > 0:
-            budget = Budget(seconds=self.seconds, pass_spp=self.pass_spp)
+            budget = Budget(seconds=self.seconds, pass_spp=self.pass_spp, growing_passes=self.growing_passes)
         else:
-            budget = Budget(spp=spp or sensor.sampler().sample_count(), pass_spp=self.pass_spp)
+            budget = Budget(spp=spp or sensor.sampler().sample_count(), pass_spp=self.pass_spp,
+                            growing_passes=self.growing_passes)
         self.last_result = render(scene, self, budget, seed=seed, sensor=sensor)
         return mi.TensorXf(self.last_result.image)
 

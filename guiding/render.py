@@ -70,6 +70,7 @@ from tqdm import tqdm
 from .driver import PassDriver, pass_seed
 from .errors import GuidingError
 from .guides.parameters import COMBINE_AUTOMATIC, COMBINE_INVERSE_VARIANCE, COMBINE_LAST, COMBINE_MODES
+from .pass_schedule import MIN_ITERATION_PASSES, PassSchedule
 
 #: Iterations an inverse-variance combination weighs: the last four, as in Müller's implementation.
 COMBINED_ITERATIONS = 4
@@ -82,14 +83,16 @@ AUTOMATIC_MIN_SPP = 256
 class Budget:
     """When to stop: after ``spp`` samples per pixel, or once ``seconds`` have been spent (exactly one is set).
 
-    ``pass_spp``: samples per pixel of each pass. ``exclude_passes``: leading passes not counted against a
-    seconds budget.
+    ``pass_spp``: samples per pixel of the first passes, and the unit of every pass. ``exclude_passes``: leading
+    passes not counted against a seconds budget (they keep ``pass_spp``). ``growing_passes``: later passes may
+    double up to the guide's next update (:mod:`guiding.pass_schedule`); False: every pass has ``pass_spp``.
     """
 
     spp: int | None = None
     seconds: float | None = None
     pass_spp: int = 8
     exclude_passes: int = 0
+    growing_passes: bool = True
 
     def __post_init__(self):
         if (self.spp is None) == (self.seconds is None):
@@ -361,6 +364,16 @@ def _iteration_record(index: int, passes: list[PassStats]) -> IterationStats:
                           guide=dict(closing.guide))
 
 
+def _guide_limits(guide, spp_total: int) -> tuple[int | None, int | None]:
+    """What the guide allows the next pass (:class:`~guiding.pass_schedule.PassSchedule`): the spp up to its next
+    update, and a share of its current training iteration (each iteration keeps several passes for its variance)."""
+    if guide is None:
+        return None, None
+    due, iteration = guide.update_due(spp_total), guide.iteration_spp()
+    return (None if due is None else due - spp_total,
+            None if iteration is None else iteration // MIN_ITERATION_PASSES)
+
+
 def next_iteration_fits(iteration: IterationStats, next_spp: int, remaining_seconds: float) -> tuple[bool, float]:
     """(fits, estimated seconds): whether an iteration of ``next_spp`` spp, at the seconds per spp measured over
     ``iteration``, fits in ``remaining_seconds``."""
@@ -406,6 +419,9 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
     driver.prepare(budget.spp)
     guide = driver.guide
 
+    film = (scene.sensors()[sensor] if isinstance(sensor, int) else sensor).film()
+    schedule = PassSchedule(budget.pass_spp, int(np.prod(film.crop_size())), budget.growing_passes,
+                            budget.exclude_passes)
     images = _IterationImages(combine)
     passes: list[PassStats] = []
     iterations: list[IterationStats] = []
@@ -422,6 +438,15 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
         images.close(record)
         iterations.append(record)
 
+    def snapshot_limit() -> int | None:
+        """The spp up to the next snapshot (at ``pass_spp·2^k``), so that no pass runs past one."""
+        if snapshot is None:
+            return None
+        boundary = budget.pass_spp
+        while boundary <= spp_total:
+            boundary *= 2
+        return boundary - spp_total
+
     def take_snapshot() -> None:
         nonlocal snapshot_spp
         image, spp_in_image, _ = images.image()
@@ -433,11 +458,15 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
             if budget.spp is not None:
                 if spp_total >= budget.spp:
                     break
-                spp = min(budget.pass_spp, budget.spp - spp_total)
+                left = budget.spp - spp_total
+                spp = min(schedule.next(*_guide_limits(guide, spp_total), snapshot_limit(), left), left)
             else:
                 if counted >= budget.seconds:
                     break
-                spp = budget.pass_spp
+                fitting = None
+                if passes and passes[-1].counted_seconds > 0:   # at the seconds per spp of the last pass
+                    fitting = int((budget.seconds - counted) * passes[-1].spp / passes[-1].counted_seconds)
+                spp = schedule.next(*_guide_limits(guide, spp_total), snapshot_limit(), fitting)
             index = len(passes)
 
             # ------------------------------ Render and update ------------------------------

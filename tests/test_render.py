@@ -108,13 +108,14 @@ def test_snapshots_show_the_running_mean_and_cost_no_budget(cornell, monkeypatch
     result = render(cornell, GuidedPathIntegrator(), Budget(spp=44, pass_spp=4), snapshot=snapshot,
                     on_pass=lambda stats, image: pass_images.append((stats.spp, image)))
     assert [s[0] for s in snapshots] == [4, 8, 16, 32, 44]       # pass_spp·2^k, and the last pass
+    assert [p.spp for p in result.passes] == [4, 4, 8, 16, 8, 4]   # passes grow, but none runs past a snapshot
     for spp, image, seconds, spp_in_image in snapshots:
         done = pass_images[:sum(p.spp_total <= spp for p in result.passes)]
         expected = sum(s * img for s, img in done) / sum(s for s, _ in done)
         np.testing.assert_allclose(image, expected, rtol=1e-9, atol=1e-12)
         assert spp_in_image == spp and seconds == pytest.approx(1e-3 * spp)
     np.testing.assert_allclose(result.image, snapshots[-1][1].astype(np.float32))
-    assert [p.seconds for p in result.passes] == pytest.approx([4e-3] * 11)
+    assert [p.seconds for p in result.passes] == pytest.approx([1e-3 * p.spp for p in result.passes])
     assert all(p.update_seconds == 0 for p in result.passes) and result.counted_seconds() == pytest.approx(0.044)
     # Nor does the bookkeeping launch a kernel that a pass would count.
     assert len({p.kernels_launched for p in result.passes}) == 1

@@ -508,7 +508,8 @@ def test_progressive_render_statistics_and_one_kernel(cornell):
     from guiding.render import Budget, render
 
     guide = SDTreeGuide(base_spp=8)
-    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128, pass_spp=8), seed=3, combine="last")
+    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128, pass_spp=8, growing_passes=False),
+                    seed=3, combine="last")
     stats = [p.guide for p in result.passes]
     # The renderer hands the guide its 128-spp budget: iterations (0, 8), (8, 24), (24, 56) and a final (56, 128).
     assert [p.iteration_done for p in result.passes] == [True, False, True, False, False, False, True] + [False] * 9
@@ -527,7 +528,8 @@ def test_budget_makes_the_last_iteration_run_to_the_end_without_learning(cornell
 
     guide = SDTreeGuide(base_spp=8, budget_spp=64)
     assert doubling_schedule(guide.base_spp, guide.budget_spp) == [(0, 8), (8, 24), (24, 64)]
-    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=64, pass_spp=8), seed=3)
+    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=64, pass_spp=8, growing_passes=False),
+                    seed=3)
     stats = [p.guide for p in result.passes]
     assert [p.iteration_done for p in result.passes] == [True, False, True] + [False] * 5
     assert [s["final_iteration"] for s in stats] == [False] * 2 + [True] * 6
@@ -543,7 +545,8 @@ def test_iterations_in_the_render_result(cornell):
     from guiding.render import Budget, render
 
     guide = SDTreeGuide(base_spp=8)
-    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128, pass_spp=8), seed=3, combine="last")
+    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128, pass_spp=8, growing_passes=False),
+                    seed=3, combine="last")
     its = result.iterations
     assert [(it.spp_start, it.spp_end, it.passes) for it in its] == [(0, 8, 1), (8, 24, 2), (24, 56, 4), (56, 128, 9)]
     for it in its:
@@ -580,7 +583,8 @@ def test_seconds_budget_stops_training_when_the_next_iteration_would_not_fit(cor
 
     FakeClock(monkeypatch, cost_per_spp=1e-3)   # 1 ms per spp, and compilation free
     guide = SDTreeGuide(base_spp=8)
-    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(seconds=seconds, pass_spp=8), seed=1,
+    result = render(cornell, GuidedPathIntegrator(guide=guide),
+                    Budget(seconds=seconds, pass_spp=8, growing_passes=False), seed=1,
                     combine="last")
     assert result.training_stopped["spp"] == stop_spp
     assert result.training_stopped["seconds"] == pytest.approx(stop_spp * 1e-3)

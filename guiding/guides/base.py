@@ -9,6 +9,13 @@ import mitsuba as mi
 from .parameters import COMBINE_LAST
 
 
+def rgb_mean(spectrum: mi.Spectrum) -> mi.Float:
+    """The mean of an RGB value's three channels, per lane. Not ``dr.mean``, whose per-lane mean is traced as a
+    sum times the array's width over three times its width: the width is a literal of the kernel, and every pass
+    of another size was a new render kernel (2 s of compilation each at 80 × 45)."""
+    return (spectrum.x + spectrum.y + spectrum.z) * (1.0 / 3.0)
+
+
 @dataclass
 class NoPathState:
     """Per-path learning state of a guide that learns nothing (an empty Dr.Jit PyTree)."""
@@ -55,6 +62,11 @@ class Guide:
         """Rebuild the sampling distributions from what the last pass recorded (``spp_done`` spp so far)."""
         return UpdateResult()
 
+    def update_due(self, spp_done: int) -> int | None:
+        """The spp total at which the distributions next change (``spp_done``: after every pass), or None when they
+        never will (the guide learns nothing, or has stopped): a renderer may render up to there in one pass."""
+        return None
+
     def records(self) -> bool:
         """Whether the next pass records what its paths see (``record`` / ``finish_paths``); the path loop is
         traced without them otherwise. A scheduled guide stops recording in its final iteration."""
@@ -72,7 +84,8 @@ class Guide:
         """The render's spp budget (None under a seconds budget), told once before the first pass."""
 
     def iteration_spp(self) -> int | None:
-        """Length in spp of the iteration the next pass belongs to; None for a guide without iterations."""
+        """Length in spp of the iteration the next pass belongs to; None for a guide without iterations (or when
+        it is unknown)."""
         return None
 
     def stop_training(self) -> None:

@@ -39,12 +39,13 @@ hemisphere samplers guide from pass 1.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
 
-from .base import Guide, UpdateResult
+from .base import Guide, UpdateResult, rgb_mean
 from .cdf_rows import sample_rows
 from .grid_record import IN_BIN_PROPOSALS, RadianceRecord, table_needs
 from .parameters import (PROFILE_BSDF_PATHS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
@@ -153,7 +154,7 @@ class GridGuide(Guide):
 
     def update(self, spp_done: int) -> UpdateResult:
         stats = self._read_counters() if self.statistics else {}
-        if self.trained and spp_done - self._rebuilt_at < self.rebuild_growth * self._rebuilt_at:
+        if self.trained and spp_done < self.update_due(self._rebuilt_at):
             stats.update(self._table_stats, rebuilt=False)     # the tables of the last rebuild, still in use
         else:
             table = self.record_table
@@ -165,6 +166,15 @@ class GridGuide(Guide):
         self._updates += 1
         self._reset_counters()
         return UpdateResult(stats)
+
+    def update_due(self, spp_done: int) -> int:
+        """After the first pass, and then after every pass unless ``rebuild_growth`` g spaces the rebuilds out: at
+        the next multiple of ``step``, the largest power of two ≤ g × the spp of the last rebuild (with g = 1/4:
+        at 2^k·(1, 5/4, 3/2, 7/4)), so that the passes in between can be one pass of a power-of-two size."""
+        if not self.trained or self.rebuild_growth == 0:
+            return spp_done
+        step = 1 << max(int(math.floor(math.log2(max(self.rebuild_growth * self._rebuilt_at, 1)))), 0)
+        return (self._rebuilt_at // step + 1) * step
 
     def records(self) -> bool:
         # A profiled stage (benchmark instrument) learns its tables in the warm-up passes, then records nothing.
@@ -437,14 +447,14 @@ class GridGuide(Guide):
         pending = active & (previous != NO_RECORD)
         if pending | leaves:
             here = table.index(si.p, si.to_world(bs.wo))
-            target = dr.mean(emitted)
-            onward = dr.mean(weight) * dr.gather(mi.Float, table.q, table.entry(here), pending & continues)  # ∫ f·Q·cos
+            target = rgb_mean(emitted)
+            onward = rgb_mean(weight) * dr.gather(mi.Float, table.q, table.entry(here), pending & continues)  # ∫ f·Q·cos
             known = mi.Bool(False)
             if dr.hint(self.rule == "expected_sarsa", mode="scalar"):
                 bsdf = si.bsdf()
                 pair = table.pair(table.cell(si.p), si.sh_frame.n * _arrival_side(si))
                 known = pending & si.is_valid() & guidable(bsdf) & (dr.gather(mi.Float, table.norm, pair, pending) > 0)
-                albedo = dr.mean(bsdf.eval_diffuse_reflectance(si, known))
+                albedo = rgb_mean(bsdf.eval_diffuse_reflectance(si, known))
                 onward = dr.select(known, albedo / dr.pi * dr.gather(mi.Float, table.value, pair, known), onward)
             target += dr.select(continues | known, onward, 0)
             table.accumulate(previous, target, pending)
@@ -454,5 +464,5 @@ class GridGuide(Guide):
     def finish_paths(self, state) -> None:
         if self.rule == "mc":
             # Monte Carlo targets: the radiance each segment brought back, walked as soon as the paths end.
-            walk_backward(state, lambda entry, L: self.record_table.accumulate(entry.target, dr.mean(L),
+            walk_backward(state, lambda entry, L: self.record_table.accumulate(entry.target, rgb_mean(L),
                                                                                entry.target != NO_RECORD))

@@ -104,9 +104,10 @@ class GridParameters:
       refine_share: least policy share of a refined (cell, bin) entry (default 0.05, 25× a uniform bin's at D = 16).
       refine_capacity: most entries refined (default 4096; their tables are allocated up front).
       rebuild_growth: g ≥ 0: the record is rebuilt (Q, policy, memo tables, refinement) after a pass only once the
-        spp since its last rebuild reach g × the spp at that rebuild, and after every pass while they are fewer
-        than 1/g passes; the targets of the passes in between are kept and folded in at the next rebuild. Default 0:
-        after every pass (the paper's).
+        spp reach the next multiple of the largest power of two ≤ g × the spp at the last rebuild (the spp grow by
+        at most g between rebuilds, and the passes in between can be merged into one of a power-of-two size,
+        :mod:`guiding.pass_schedule`); the targets of the passes in between are kept and folded in at the next
+        rebuild. Default 0: after every pass (the paper's).
       statistics: count, per pass, guided vertices, invalid samples, rejection proposals and acceptances (default
         False). The counters are atomics on 1-element arrays, several per bounce (measured: ``ours`` 301 against
         237 ms/spp without them on cornell-box at scale 0.25); they are traced only when on, and only then does

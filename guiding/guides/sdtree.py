@@ -29,7 +29,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .base import Guide, NoPathState, UpdateResult
+from .base import Guide, NoPathState, UpdateResult, rgb_mean
 from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
 from .grid_cells import GridCells
 from .parameters import PAPER_SPP_UNIT, QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
@@ -164,8 +164,7 @@ class _TreeGuide(Guide):
         leaf, and one to the vertex count of its D-tree."""
         slot = entry.target
         recorded = slot != NO_RECORD
-        # The RGB mean as a sum times 1/3: dr.mean (the grid's) rounds differently, and would change the trees.
-        value = (L.x + L.y + L.z) * (1.0 / 3.0) / entry.pdf
+        value = rgb_mean(L) / entry.pdf
         # An explicit mode: Dr.Jit's default picks Expand or atomics by the accumulators' size, which grows with the
         # trees, and a change of mode is a new render kernel.
         mode = dr.ReduceMode.Local
@@ -256,8 +255,12 @@ class SDTreeGuide(_TreeGuide):
 
     def iteration_spp(self) -> int:
         """Length in spp of the iteration the next pass belongs to (a renderer under a seconds budget checks
-        that it fits before letting it run)."""
-        return self.iteration_end_spp - self.iteration_start_spp
+        that it fits before letting it run); None once training stopped, when it runs to the end of the budget."""
+        return None if self.iteration_end_spp is None else self.iteration_end_spp - self.iteration_start_spp
+
+    def update_due(self, spp_done: int) -> int | None:
+        """The end of the current iteration while it records; None once the distributions are final."""
+        return self.iteration_end_spp if self.records() and not self.is_final_iteration else None
 
     def stop_training(self) -> None:
         """Freeze the distributions (e.g. when a time budget leaves no room for another iteration): no more
@@ -387,6 +390,9 @@ class QuadtreeGridGuide(_TreeGuide):
 
     def _locate(self, p, active):
         return self._cells.cell(p)
+
+    def update_due(self, spp_done: int) -> int:
+        return spp_done      # its D-trees grow after every pass
 
     def update(self, spp_done: int) -> UpdateResult:
         start = time.perf_counter()

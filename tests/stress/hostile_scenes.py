@@ -95,8 +95,8 @@ def render_scene(scene_dict: dict, method: str, max_depth: int = 16, seed: int =
     guide = make_guide(method, statistics=True) if grid_parameters(method) is not None else make_guide(method)
     integrator = GuidedPathIntegrator(props, guide=guide)
     images = []
-    result = render(mi.load_dict(scene_dict), integrator, Budget(spp=passes * SCENE_PASS_SPP,
-                                                                 pass_spp=SCENE_PASS_SPP),
+    result = render(mi.load_dict(scene_dict), integrator, Budget(spp=passes * SCENE_PASS_SPP, pass_spp=SCENE_PASS_SPP,
+                                                                 growing_passes=False),
                     seed=seed, progress=False, on_pass=lambda stats, image: images.append(image))
     return SceneRun(method, np.array(images), result.image, result.passes, integrator.guide)
 

@@ -31,8 +31,8 @@ def test_accumulation_drift(figures):
         sum32 = weighted32 if sum32 is None else sum32 + weighted32
 
     result = render(scene, GuidedPathIntegrator(), Budget(spp=DRIFT_PASSES * DRIFT_PASS_SPP,
-                                                          pass_spp=DRIFT_PASS_SPP), progress=False,
-                    on_pass=accumulate)
+                                                          pass_spp=DRIFT_PASS_SPP, growing_passes=False),
+                    progress=False, on_pass=accumulate)
     spp = result.spp_in_image
     assert spp == DRIFT_PASSES * DRIFT_PASS_SPP and len(result.passes) == DRIFT_PASSES, \
         f"{len(result.passes)} passes, {spp} spp in the image"
