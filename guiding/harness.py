@@ -275,6 +275,8 @@ class Plan:
                 *run.budget.cli_args(), "--pass-spp", str(render["pass_spp"]), "--max-depth", str(render["max_depth"])]
         if self.config["experiments"][run.experiment].get("snapshots"):
             args.append("--snapshots")
+        if not render["growing_passes"]:
+            args.append("--fixed-passes")
         return shlex.join(args)
 
     def reference_args(self, scene: str, scale: float, spp: int) -> str:

@@ -154,7 +154,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
 
     def to_string(self) -> str:
         return (f"GuidedPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
-                f"pass_spp={self.pass_spp}, guide={self.guide.name}]")
+                f"pass_spp={self.pass_spp}, growing_passes={self.growing_passes}, guide={self.guide.name}]")
 
 
 class _PassRenderer(mi.SamplingIntegrator):

@@ -1,4 +1,5 @@
-"""The progressive renderer: passes of a few spp, each with its own seed, until an spp or a time budget is spent.
+"""The progressive renderer: passes, each with its own seed, until an spp or a time budget is spent. Passes start at
+``pass_spp`` spp and grow where the guide allows (:mod:`guiding.pass_schedule`).
 
 **Iterations.** Passes accumulate (in float64) into the image of the current *iteration*. A guide without a schedule
 (the grid guide, BSDF sampling) has a single iteration, so the image is the mean over all passes, training passes
@@ -41,7 +42,8 @@ that completes ``pass_spp · 2^k`` spp and after the last pass (:class:`Snapshot
 
 Each pass goes through :class:`guiding.driver.PassDriver`: the device is synchronised, the pass is timed, and the
 guide updates its distributions.
-Pass-varying values (the seed) reach the kernel as parameters, so the same compiled kernel serves every pass;
+Pass-varying values (the seed, the pass's size) reach the kernel as parameters, so the same compiled kernel serves
+every pass of ``pass_spp·2^k`` spp (a last pass of another size, the rest of an spp budget, compiles one more);
 ``kernels_compiled`` in the per-pass statistics shows it.
 
 Timing: ``seconds`` of a pass is wall time from launch to synchronisation, compilation included;

@@ -2,7 +2,7 @@
 its previous and its present setup beside BSDF sampling, the quadtree grid and ours, and the S-tree threshold rule
 at several image sizes.
 
-Every render is the progressive renderer's (:func:`guiding.render.render`, passes of 8 spp, max depth 16), with the
+Every render is the progressive renderer's (:func:`guiding.render.render`, first passes of 8 spp, max depth 16), with the
 seeds of the experiment harness; the error is the paper's tone-mapped MAE against a reference rendered once by
 Mitsuba's ``path`` integrator and cached in the harness's layout (``references/{scene}/x{scale}-spp{spp}/``).
 """
@@ -19,7 +19,7 @@ from .guides.parameters import PAPER_PIXELS, PAPER_SPP_UNIT, SDTreeParameters
 
 #: The reference's seed: the harness's default (config/schema.yaml), apart from the render seeds.
 REFERENCE_SEED = 1000003
-#: Samples per pixel of each reference pass (one pass of 3600 pixels × 1024 spp is 3.7 M paths).
+#: Samples per pixel of the first reference passes (3600 pixels × 1024 spp: 3.7 M paths; later ones may grow).
 REFERENCE_PASS_SPP = 1024
 #: Max depth of every render and reference (the paper's).
 MAX_DEPTH = 16

@@ -66,6 +66,10 @@ def test_full_config_expands_into_the_papers_experiments():
     run = next(r for r in by_experiment["equal_time"] if r.scene == "veach-ajar" and r.method == "ours")
     assert plan.render_file(run, "image.exr") == "results/full/renders/equal_time/veach-ajar/ours/10s/seed0/image.exr"
     assert "--seconds 10 --exclude-passes 10" in plan.render_args(run)
+    assert "--fixed-passes" not in plan.render_args(run)      # passes grow unless the config says otherwise
+    fixed = harness.load_config(FULL_CONFIG)
+    fixed["render"]["growing_passes"] = False
+    assert "--fixed-passes" in harness.plan(fixed, check=False).render_args(run)
     ref = plan.reference_for(run)
     assert plan.reference_file(ref, "image.exr") == "results/full/references/veach-ajar/x0.25-spp16384/image.exr"
     assert len({r.key for r in plan.runs}) == len(plan.runs)

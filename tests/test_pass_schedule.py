@@ -65,3 +65,13 @@ def test_sdtree_iterations_end_on_pass_boundaries_with_several_passes(cornell):
     assert max(p.spp for p in result.passes) > 8      # the final iteration's passes grew
     assert result.iterations[-1].variance is not None and np.isfinite(result.image).all()
 
+
+
+def test_a_second_render_of_a_trained_grid_guide_rebuilds_from_its_own_spp(cornell):
+    """The spp of a render count from 0: a guide trained by an earlier render rebuilds after the new render's first
+    pass (not at the old render's next rebuild), and its passes grow from there."""
+    integrator = GuidedPathIntegrator(guide=GridGuide(rebuild_growth=0.25))
+    render(cornell, integrator, Budget(spp=64, pass_spp=8), progress=False)
+    again = render(cornell, integrator, Budget(spp=64, pass_spp=8), progress=False)
+    assert [p.spp_total for p in again.passes] == [8, 16, 24, 32, 40, 48, 56, 64]
+    assert all(p.guide["rebuilt"] for p in again.passes)

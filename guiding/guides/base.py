@@ -63,9 +63,10 @@ class Guide:
         return UpdateResult()
 
     def update_due(self, spp_done: int) -> int | None:
-        """The spp total at which the distributions next change (``spp_done``: after every pass), or None when they
-        never will (the guide learns nothing, or has stopped): a renderer may render up to there in one pass."""
-        return None
+        """The spp total at which the distributions next change, asked after the update that followed
+        ``spp_done`` spp: a renderer may render up to there in one pass. ``spp_done`` (the default): after every
+        pass; None: never (the guide learns nothing, or has stopped)."""
+        return spp_done
 
     def records(self) -> bool:
         """Whether the next pass records what its paths see (``record`` / ``finish_paths``); the path loop is

@@ -39,7 +39,6 @@ hemisphere samplers guide from pass 1.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import drjit as dr
@@ -151,6 +150,7 @@ class GridGuide(Guide):
     # ================================================================ host side
     def prepare(self, scene: mi.Scene) -> None:
         self.record_table.set_bounds(scene.bbox())
+        self._rebuilt_at = 0      # a render that continues a trained guide counts its spp from 0: rebuild after a pass
 
     def update(self, spp_done: int) -> UpdateResult:
         stats = self._read_counters() if self.statistics else {}
@@ -168,12 +168,13 @@ class GridGuide(Guide):
         return UpdateResult(stats)
 
     def update_due(self, spp_done: int) -> int:
-        """After the first pass, and then after every pass unless ``rebuild_growth`` g spaces the rebuilds out: at
-        the next multiple of ``step``, the largest power of two ≤ g × the spp of the last rebuild (with g = 1/4:
-        at 2^k·(1, 5/4, 3/2, 7/4)), so that the passes in between can be one pass of a power-of-two size."""
+        """After the first pass, and then after every pass unless ``rebuild_growth`` g spaces the rebuilds out: then
+        from the last rebuild alone (not ``spp_done``), at the next multiple of ``step``, the largest power of two
+        ≤ g × the spp of the last rebuild (with g = 1/4: at 2^k·(1, 5/4, 3/2, 7/4)), so that the passes in between
+        can be one pass of a power-of-two size."""
         if not self.trained or self.rebuild_growth == 0:
             return spp_done
-        step = 1 << max(int(math.floor(math.log2(max(self.rebuild_growth * self._rebuilt_at, 1)))), 0)
+        step = 1 << max(int(self.rebuild_growth * self._rebuilt_at).bit_length() - 1, 0)
         return (self._rebuilt_at // step + 1) * step
 
     def records(self) -> bool:

@@ -253,7 +253,7 @@ class SDTreeGuide(_TreeGuide):
         given spp): README, "SD-tree baseline", for the measurements at three image sizes."""
         return self.c * math.sqrt(paths / (PAPER_SPP_UNIT * self.c_pixels))
 
-    def iteration_spp(self) -> int:
+    def iteration_spp(self) -> int | None:
         """Length in spp of the iteration the next pass belongs to (a renderer under a seconds budget checks
         that it fits before letting it run); None once training stopped, when it runs to the end of the budget."""
         return None if self.iteration_end_spp is None else self.iteration_end_spp - self.iteration_start_spp
