@@ -12,14 +12,12 @@ import contextlib
 import json
 import math
 import os
-import platform
-import socket
 import sys
-import time
 from dataclasses import asdict
 from pathlib import Path
 
 from .errors import GuidingError
+from .provenance import device_name, render_provenance
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
@@ -225,36 +223,6 @@ def _output_dir(path: str):
         raise
 
 
-def _provenance(variant: str, threads: int | None) -> dict:
-    import drjit as dr
-    import mitsuba as mi
-
-    return {"variant": variant, "threads": dr.thread_count() if variant.startswith("llvm") else None,
-            "device": device_name(variant), "host": socket.gethostname(), "platform": platform.platform(),
-            "python": platform.python_version(), "mitsuba": mi.__version__, "drjit": dr.__version__,
-            "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-
-
-def device_name(variant: str) -> str:
-    if variant.startswith("cuda"):
-        import subprocess
-
-        try:
-            names = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
-                                   text=True, timeout=10).stdout.strip().splitlines()
-        except (OSError, subprocess.SubprocessError):
-            names = []
-        return f"GPU: {names[0]}" if names else "GPU: CUDA device"
-    try:
-        with open("/proc/cpuinfo") as cpuinfo:
-            for line in cpuinfo:
-                if line.startswith("model name"):
-                    return f"CPU: {line.split(':', 1)[1].strip()} ({os.cpu_count()} threads)"
-    except OSError:
-        pass
-    return f"CPU: {platform.processor() or platform.machine()}"
-
-
 def _image_metadata(scene_name: str, args, method: str, integrator, budget, provenance: dict, combine: str) -> dict:
     """What every EXR file of a render carries in its header (imageio.write_exr; the spp are added per file): the
     method and its guide's parameters, the render's parameters (``combine``: its final-image mode), seed, scene,
@@ -276,7 +244,7 @@ def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget
     from .scenes import find_scene, load_scene
 
     scene = load_scene(scene_name, args.scale, args.scene_dir)
-    provenance = _provenance(variant, args.threads)
+    provenance = render_provenance(variant)
     combine = resolve_combine(getattr(args, "combine", None), integrator)
     metadata = _image_metadata(scene_name, args, method, integrator, budget, provenance, combine)
     snapshots = SnapshotWriter(out, metadata) if getattr(args, "snapshots", False) else None

@@ -8,6 +8,7 @@ import os
 import platform
 import socket
 import subprocess
+import time
 from pathlib import Path
 
 from .scenes import PROJECT_ROOT
@@ -84,3 +85,33 @@ def provenance_html(prov: dict) -> str:
         f"<h2>Configuration</h2><p>files: {html.escape(', '.join(prov['configfiles']) or '(defaults)')}</p>",
         f"<pre>{html.escape(yaml.safe_dump(prov['config'], sort_keys=False))}</pre>",
         "</body></html>"])
+
+
+def render_provenance(variant: str) -> dict:
+    """The machine and software of a render in this process (its stats.json and EXR headers)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    return {"variant": variant, "threads": dr.thread_count() if variant.startswith("llvm") else None,
+            "device": device_name(variant), "host": socket.gethostname(), "platform": platform.platform(),
+            "python": platform.python_version(), "mitsuba": mi.__version__, "drjit": dr.__version__,
+            "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+
+
+def device_name(variant: str) -> str:
+    """The device a variant renders on, in words (``CPU: … (N threads)``, ``GPU: …``)."""
+    if variant.startswith("cuda"):
+        try:
+            names = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                                   text=True, timeout=10).stdout.strip().splitlines()
+        except (OSError, subprocess.SubprocessError):
+            names = []
+        return f"GPU: {names[0]}" if names else "GPU: CUDA device"
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            for line in cpuinfo:
+                if line.startswith("model name"):
+                    return f"CPU: {line.split(':', 1)[1].strip()} ({os.cpu_count()} threads)"
+    except OSError:
+        pass
+    return f"CPU: {platform.processor() or platform.machine()}"

@@ -1,12 +1,16 @@
 """Growing passes (:mod:`guiding.pass_schedule`): sizes, the limits each guide sets, and one render kernel for
 every pass size."""
 
+import drjit as dr
 import numpy as np
 import pytest
+
+from guiding.driver import PassDriver, pass_seed, render_pass
 
 from guiding.guides.grid import GridGuide
 from guiding.guides.sdtree import SDTreeGuide
 from guiding.integrator import GuidedPathIntegrator
+from guiding.methods import make_guide
 from guiding.pass_schedule import MAX_PASS_PATHS, MIN_ITERATION_PASSES, PassSchedule
 from guiding.render import Budget, render
 
@@ -42,14 +46,33 @@ def test_brdf_passes_grow_to_the_budget_with_one_kernel(cornell):
     (0.25, [8, 16, 24, 32, 40, 48, 56, 64, 80, 96, 112, 128, 160]),
 ])
 def test_grid_passes_end_at_the_rebuilds_and_keep_one_kernel(cornell, growth, ends):
-    """Every pass ends with a rebuild, so no pass samples with tables older than the fixed-pass render would; the
-    render kernel of the guided passes is compiled once for every pass size (its RGB means once had the pass's
-    width as a constant)."""
+    """Every pass ends with a rebuild, so no pass samples with tables older than the fixed-pass render would."""
     guide = GridGuide(rule="sarsa", sampler="hemi_rej_plus", rebuild_growth=growth)
     result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=160, pass_spp=8), progress=False)
     assert [p.spp_total for p in result.passes] == ends
     assert all(p.guide["rebuilt"] for p in result.passes)
-    assert all(p.kernels_compiled == 0 for p in result.passes[2:])   # pass 0 samples the BSDF, pass 1 guides
+
+
+@pytest.mark.parametrize("method", ["ours-plus", "mc-hemi_inv", "sdtree"])
+def test_one_render_kernel_serves_every_pass_size(cornell, method):
+    """The kernels of a guided pass are the same whatever its size (the grid guide's RGB means once had the pass's
+    width as a constant: a new kernel, 2 s of compilation, for every size). Compared by hash, so that Dr.Jit's disk
+    cache cannot hide a new kernel."""
+    integrator = GuidedPathIntegrator(guide=make_guide(method))
+    driver = PassDriver(cornell, integrator)
+    driver.prepare()
+    for index in range(2):                 # pass 0 samples the BSDF, pass 1 guides
+        driver.run(pass_seed(0, index), 8)
+
+    def kernels(spp: int) -> set[str]:
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()
+            image = render_pass(cornell, integrator, 0, pass_seed(1, spp), spp)
+            dr.eval(image)
+            dr.sync_thread()
+            return {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
+
+    assert kernels(8) == kernels(16) == kernels(64)
 
 
 def test_sdtree_iterations_end_on_pass_boundaries_with_several_passes(cornell):

@@ -17,7 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import pytest
 
-from guiding.cli import device_name
+from guiding.provenance import device_name
 from guiding.imageio import atomic_path
 
 #: The report's groups, in its order: from single functions to whole renders and the command line.
