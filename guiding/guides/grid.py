@@ -154,7 +154,7 @@ class GridGuide(Guide):
 
     def update(self, spp_done: int) -> UpdateResult:
         stats = self._read_counters() if self.statistics else {}
-        if self.trained and spp_done < self._next_rebuild():
+        if self.trained and self.rebuild_growth > 0 and spp_done < self._next_rebuild():
             stats.update(self._table_stats, rebuilt=False)     # the tables of the last rebuild, still in use
         else:
             table = self.record_table
@@ -168,13 +168,14 @@ class GridGuide(Guide):
         return UpdateResult(stats)
 
     def update_due(self, spp_done: int) -> int:
-        """After the first pass, then at the next rebuild (:meth:`_next_rebuild`)."""
-        return self._next_rebuild() if self.trained else spp_done
+        """After every pass while untrained or without ``rebuild_growth``, else at the next rebuild
+        (:meth:`_next_rebuild`)."""
+        return self._next_rebuild() if self.trained and self.rebuild_growth > 0 else spp_done
 
     def _next_rebuild(self) -> int:
         """The spp of the next rebuild, from the last one alone: the next multiple of ``step``, the largest power of
-        two ≤ ``rebuild_growth`` g × the spp of the last rebuild (g = 1/4: at 2^k·(1, 5/4, 3/2, 7/4); g = 0: after
-        every pass), so that the passes in between can be one pass of a power-of-two size."""
+        two ≤ ``rebuild_growth`` g × the spp of the last rebuild (g = 1/4: at 2^k·(1, 5/4, 3/2, 7/4)), so that the
+        passes in between can be one pass of a power-of-two size."""
         step = 1 << max(int(self.rebuild_growth * self._rebuilt_at).bit_length() - 1, 0)
         return (self._rebuilt_at // step + 1) * step
 
