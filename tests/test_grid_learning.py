@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from guiding.guides.grid import GridGuide
+from guiding.guides.grid_record import PAIR_FIELDS
 
 ALBEDO = 0.6
 
@@ -89,7 +90,7 @@ def test_expected_sarsa_reads_the_memoised_integral(floor):
     pair = record.pair(record.cell(v2.p), mi.Vector3f(0, 0, 1))
     integral = 3.0
     dr.scatter(record.value, integral, pair)
-    dr.scatter(record.norm, 1.0, pair)  # marks the memo as computed
+    dr.scatter(record.pair_memo, 1.0, PAIR_FIELDS * pair)  # N > 0: marks the memo as computed
     (first, second), _ = _run_path(guide, floor)
     recorded = _recorded(guide)
     assert recorded[first] == pytest.approx((0.1 + ALBEDO / np.pi * integral, 1), rel=1e-5)

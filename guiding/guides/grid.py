@@ -46,7 +46,7 @@ import mitsuba as mi
 
 from .base import Guide, UpdateResult, rgb_mean
 from .cdf_rows import sample_rows
-from .grid_record import IN_BIN_PROPOSALS, RadianceRecord, table_needs
+from .grid_record import IN_BIN_PROPOSALS, PairMemo, RadianceRecord, table_needs
 from .parameters import (PROFILE_BSDF_PATHS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
                          with_overrides)
 from .vertex_log import NO_RECORD, VertexLog, walk_backward
@@ -68,10 +68,8 @@ class _Vertex:
     cell: mi.UInt32
     side: mi.Float
     pair: mi.UInt32 = None
-    norm: mi.Float = None          # N at the normal bin's centre (0: the pair has no memo yet)
-    row: mi.UInt32 = None          # the pair's row number in ``hemi_cdf``
+    memo: PairMemo = None          # the pair's N, CDF row, M and in-bin miss share
     centre: mi.Vector3f = None     # n_c, the normal bin's centre on the arrival side (world)
-    bound: mi.Float = None         # M ≥ max P·cos(ω, n_c)
     bsdf_share: mi.Float = None    # u: bsdf_fraction, or max(ε_r, min_bsdf_share); ≥ smooth_bsdf_share if not diffuse
 
 
@@ -279,15 +277,15 @@ class GridGuide(Guide):
         return dr.select(vertex.guided, self._mixture_pdf(vertex, si.to_world(wo), bsdf_pdf), bsdf_pdf)
 
     def _locate(self, si, bsdf, active, mark_visited=True) -> "_Vertex":
-        """The vertex's cell, arrival side, (cell, normal bin) pair and its N; marks a pair without memo visited
+        """The vertex's cell, arrival side, (cell, normal bin) pair and its memo; marks a pair without memo visited
         (the memoised ones stay marked: written at every vertex, the flags cost the cores' caches a line each)."""
         table = self.record_table
         vertex = _Vertex(guided=active & guidable(bsdf, self.smooth), cell=table.cell(si.p), side=_arrival_side(si))
         if table.needs_pairs:
             vertex.pair = table.pair(vertex.cell, si.sh_frame.n * vertex.side)
-            vertex.norm = dr.gather(mi.Float, table.norm, vertex.pair, vertex.guided)
+            vertex.memo = table.memo(vertex.pair, vertex.guided)
             if mark_visited:
-                dr.scatter(table.visited, mi.UInt32(1), vertex.pair, vertex.guided & (vertex.norm == 0))
+                dr.scatter(table.visited, mi.UInt32(1), vertex.pair, vertex.guided & (vertex.memo.norm == 0))
         return vertex
 
     def _vertex(self, si, bsdf, active, mark_visited=True) -> "_Vertex":
@@ -296,16 +294,13 @@ class GridGuide(Guide):
         vertex = self._locate(si, bsdf, active, mark_visited)
         if self.sampler.startswith("hemi"):
             # A pair seen for the first time has no memo yet: its vertices keep BSDF sampling this pass.
-            vertex.guided &= vertex.norm > 0
-        if table.needs_hemi_cdf:
-            vertex.row = dr.gather(mi.UInt32, table.row_of, vertex.pair, vertex.guided)
+            vertex.guided &= vertex.memo.norm > 0
         vertex.bsdf_share = mi.Float(self.bsdf_fraction)
         if self.sampler.startswith("hemi_rej"):
             vertex.centre = table.normal_bins.normal(vertex.pair % table.normal_bins.count)
-            vertex.bound = dr.gather(mi.Float, table.bound, vertex.pair, vertex.guided)
             share = mi.Float(0)
             if self.sampler == "hemi_rej_plus":
-                c = vertex.norm / (2 * dr.pi * vertex.bound)     # ū/M, the mean of P·cos over its maximum
+                c = vertex.memo.norm / (2 * dr.pi * vertex.memo.bound)     # ū/M, the mean of P·cos over its maximum
                 share = dr.maximum((1 - 2 * c) / (2 - 2 * c), 0)
             vertex.bsdf_share = dr.maximum(share, self.min_bsdf_share)
         if self.smooth:
@@ -326,44 +321,38 @@ class GridGuide(Guide):
         k = table.fine_bin(world) if chosen_bin is None else chosen_bin
         if refinement:
             k, sub = k // table.fine, k % table.fine
-        if self.sampler.endswith("_inv"):
+        if self.sampler == "sphere_inv":
             share = vertex.bsdf_share
-            return share * bsdf_pdf + (1 - share) * self._bin_probability(vertex, k) / table.bins.solid_angle
+            policy = dr.gather(mi.Float, table.policy, vertex.cell * table.bins.count + k, vertex.guided)
+            return share * bsdf_pdf + (1 - share) * policy / table.bins.solid_angle
+        if self.sampler == "hemi_inv":
+            share = vertex.bsdf_share
+            return share * bsdf_pdf + (1 - share) * table.hemi_density_at(vertex.memo.row, k, vertex.guided)
         if self.proposal == "bins":
-            miss_all = dr.gather(mi.Float, table.in_bin_miss, vertex.pair, vertex.guided)
-            scale = dr.gather(mi.Float, table.in_bin_scale, table.in_bin_flat(vertex.pair, k), vertex.guided)
-            accepted = scale * dr.maximum(dr.dot(world, vertex.centre), 0)
+            miss_all = vertex.memo.in_bin_miss
+            cosine = dr.maximum(dr.dot(world, vertex.centre), 0)
+            guide_density = table.hemi_density_at(vertex.memo.row, k, vertex.guided) * cosine
             if refinement:
                 entry = vertex.cell * table.bins.count + k
                 refined = refinement.sampled(entry, vertex.guided)
-                accepted = dr.select(refined, refinement.density(entry, sub, refined), accepted)
-            guide_density = self._bin_probability(vertex, k) * accepted
+                guide_density = dr.select(refined, table.hemi_probability(vertex.memo.row, k, refined)
+                                          * refinement.density(entry, sub, refined), guide_density)
         else:
-            acceptance = vertex.norm / (2 * dr.pi * vertex.bound)
+            acceptance = vertex.memo.norm / (2 * dr.pi * vertex.memo.bound)
             miss_all = dr.power(1 - dr.minimum(acceptance, 1), self.max_proposals)
             cosine = dr.maximum(dr.dot(world, vertex.centre), 0)
             target = dr.gather(mi.Float, table.policy, vertex.cell * table.bins.count + k, vertex.guided)
-            guide_density = (1 - miss_all) * target * cosine / vertex.norm
+            guide_density = (1 - miss_all) * target * cosine / vertex.memo.norm
         # The rejected share r falls back to the BSDF: α = 1 − (1 − u)·(1 − r).
         share = 1 - (1 - vertex.bsdf_share) * (1 - miss_all)
         return share * bsdf_pdf + (1 - vertex.bsdf_share) * guide_density
-
-    def _bin_probability(self, vertex, k: mi.UInt32) -> mi.Float:
-        """Probability of bin ``k`` under the CDF row a bin is drawn from (the cell's, or the pair's)."""
-        table = self.record_table
-        if self.sampler == "sphere_inv":
-            return dr.gather(mi.Float, table.policy, vertex.cell * table.bins.count + k, vertex.guided)
-        first = vertex.row * table.bins.count
-        above = dr.gather(mi.Float, table.hemi_cdf, first + k, vertex.guided)
-        below = dr.gather(mi.Float, table.hemi_cdf, first + k - 1, vertex.guided & (k > 0))
-        return above - below
 
     def _sample_inversion(self, sampler, vertex, active) -> tuple[mi.Vector3f, mi.UInt32]:
         """A world direction drawn from the sampler's CDF row (the cell's, or the pair's), and its bin."""
         table = self.record_table
         if self.sampler == "sphere_inv":
             return _direction_from_cdf(table.bins, table.cdf, table.cdf_cuts, vertex.cell, sampler, active)
-        return _direction_from_cdf(table.bins, table.hemi_cdf, table.hemi_cuts, vertex.row, sampler, active)
+        return _direction_from_cdf(table.bins, table.hemi_cdf, table.hemi_cuts, vertex.memo.row, sampler, active)
 
     def _sample_rejection(self, sampler, vertex, searching) -> tuple[mi.Vector3f, mi.UInt32 | None, mi.Bool]:
         """A world direction from the target ``P·cos⁺(ω, n_c)/N``: (direction, the bin it was drawn in or None,
@@ -371,7 +360,7 @@ class GridGuide(Guide):
         table = self.record_table
         centre = vertex.centre
         if self.proposal == "bins":
-            k = sample_rows(table.hemi_cdf, table.hemi_cuts, vertex.row, table.bins.count, sampler.next_1d(searching),
+            k = sample_rows(table.hemi_cdf, table.hemi_cuts, vertex.memo.row, table.bins.count, sampler.next_1d(searching),
                             searching)
             if table.refinement:
                 entry = vertex.cell * table.bins.count + k
@@ -393,7 +382,7 @@ class GridGuide(Guide):
 
             def accepts(sampler, candidate, active):   # ξ·M < P·cos(ω, n_c)
                 target = table.policy_at(vertex.cell, candidate, active) * dr.dot(candidate, centre)
-                return sampler.next_1d(active) * vertex.bound < target
+                return sampler.next_1d(active) * vertex.memo.bound < target
 
         self._count("rejection_samples", 1, searching)
         if self.proposal == "bins":
@@ -456,7 +445,7 @@ class GridGuide(Guide):
             if dr.hint(self.rule == "expected_sarsa", mode="scalar"):
                 bsdf = si.bsdf()
                 pair = table.pair(table.cell(si.p), si.sh_frame.n * _arrival_side(si))
-                known = pending & si.is_valid() & guidable(bsdf) & (dr.gather(mi.Float, table.norm, pair, pending) > 0)
+                known = pending & si.is_valid() & guidable(bsdf) & (table.memo(pair, pending).norm > 0)
                 albedo = rgb_mean(bsdf.eval_diffuse_reflectance(si, known))
                 onward = dr.select(known, albedo / dr.pi * dr.gather(mi.Float, table.value, pair, known), onward)
             target += dr.select(continues | known, onward, 0)

@@ -8,19 +8,25 @@ Life cycle: :meth:`RadianceRecord.update` turns the accumulated targets (never c
 the learning rate 1/N) into Q, the policy ``P = (1 − ε)·(Q + 1e-6)/Σ(Q + 1e-6) + ε/B`` (ε floored, see ``MIN_EXPLORATION``), the per-cell CDF (for
 ``sphere_inv``), and the memo tables of the (cell, normal bin) pairs the last passes visited:
 
-- ``norm``  N = ∫_H P·cos dω, the normalising term of the hemisphere samplers,
-- ``bound`` M ≥ max_H P·cos over every normal of the normal bin (a true bound, so rejection is exact),
+- ``pair_memo``, a :class:`PairMemo` per pair, its four floats side by side so that a vertex reads them with one
+  packet gather (the CPU backend compiles every gather of a single float into a load per lane):
+  N = ∫_H P·cos dω, the normalising term of the hemisphere samplers; the row number of the pair's CDF;
+  M ≥ max_H P·cos over every normal of the normal bin (a true bound, so rejection is exact); the in-bin miss share,
 - ``value`` V = ∫_H Q·cos dω, Expected SARSA's expectation,
 - ``hemi_cdf`` the CDF over bins of P·∫_bin cos (``hemi_inv``, and the ``bins`` proposal of the rejection samplers),
-  one row per visited pair only (``row_of`` maps a pair to its row number), with its cut points
-  (:mod:`~guiding.guides.cdf_rows`): 469 rows on cornell-box at S = 8, against the
-  76 800 pairs of the grid (157 MB dense, and a binary search in it missed the caches).
+  one row per visited pair only, with its cut points (:mod:`~guiding.guides.cdf_rows`): 469 rows on cornell-box at
+  S = 8, against the 76 800 pairs of the grid (157 MB dense, and a binary search in it missed the caches),
+- ``hemi_density``, beside each CDF row, the guide's density in each bin, read with one gather where the CDF step
+  and the in-bin scale took three: ``P_k·s_k`` per unit cos⁺(ω, n_c) for the ``bins`` proposal, ``P_k/A`` per
+  steradian for ``hemi_inv``.
 
 N and V use the cosine integrals at the normal bin's centre (exact there; the error elsewhere is measured in
 ``results/``), from a quadrature of at least 8×8 points per bin (more below D = 16, see ``quadrature_points``).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -60,11 +66,22 @@ REACHABLE_FLOOR = 0.01
 #: drawn; when all are rejected the BSDF's direction is used, with the pair's probability ``in_bin_miss`` of that in
 #: the density. Interior bins accept ~90 % of proposals; bins across the horizon less, and they are rarely drawn.
 IN_BIN_PROPOSALS = 2
-#: Bytes per entry of the visited pairs' CDF rows while they are built: the row (4), its weights and their prefix
-#: sums (evaluated by the scan), and the gathered indices; and per cut point: the point and its histogram entry.
-ROW_BUILD_BYTES = 16
+#: Bytes per entry of the visited pairs' CDF rows while they are built: the row (4), its density (4), its weights
+#: and their prefix sums (evaluated by the scan), and the gathered indices; and per cut point: the point and its histogram entry.
+ROW_BUILD_BYTES = 20
 CUT_BUILD_BYTES = 8
+#: Floats per pair in ``pair_memo`` (:class:`PairMemo`).
+PAIR_FIELDS = 4
 
+
+@dataclass
+class PairMemo:
+    """What the samplers read about a vertex's (cell, normal bin) pair (:meth:`RadianceRecord.memo`)."""
+
+    norm: mi.Float          # N at the normal bin's centre; 0: no memo yet (the pair was not visited before)
+    row: mi.UInt32          # the pair's row of ``hemi_cdf`` (stored as a float: exact, rows stay far below 2^24)
+    bound: mi.Float         # M ≥ max P·cos(ω, n) over the normal bin
+    in_bin_miss: mi.Float   # the chance that every in-bin proposal is rejected (``bins`` proposal)
 
 
 def table_needs(rule: str, sampler: str, proposal: str) -> dict[str, bool]:
@@ -106,8 +123,8 @@ class RadianceRecord:
       needs_memo: build N and M for visited (cell, normal bin) pairs (hemisphere samplers).
       needs_hemi_cdf: build the per-pair CDFs (``hemi_inv``; with ``needs_in_bin``, the rejection samplers').
       needs_in_bin: the per-pair CDFs weigh each bin by its exact ∫ cos⁺(ω, n_c) (the rejection target, no floor),
-        and the in-bin rejection's tables are built (``in_bin_bound``, ``in_bin_scale``, ``in_bin_misses``, per
-        pair ``in_bin_miss``).
+        and the in-bin rejection's tables are built (``in_bin_bound``, ``in_bin_scale``, ``in_bin_misses``, and
+        the pairs' in-bin miss share).
       needs_value: build V (Expected SARSA).
       min_exploration: floor of ε (0 gives the paper's schedule exactly; see MIN_EXPLORATION).
       sub_resolution: R > 1 refines the entries holding ``refine_share`` of their cell's policy into R × R
@@ -143,17 +160,15 @@ class RadianceRecord:
             self.cdf_cuts = cut_points(self.cdf, B)
         if self.needs_pairs:
             self.visited = dr.zeros(mi.UInt32, C * NB)
-            self.norm = dr.zeros(mi.Float, C * NB)
-            self.bound = dr.zeros(mi.Float, C * NB)
+            self.pair_memo = dr.zeros(mi.Float, PAIR_FIELDS * C * NB)
             self.value = dr.zeros(mi.Float, C * NB)
-            self.row_of = dr.zeros(mi.UInt32, C * NB)
             # A row, never read, until a visit.
             self.hemi_cdf = dr.zeros(mi.Float, B) if needs_hemi_cdf else None
-            self.hemi_cuts = dr.zeros(mi.UInt32, cut_count(B) + 1) if needs_hemi_cdf else None
+            self.hemi_density = dr.zeros(mi.Float, B) if needs_hemi_cdf else None
+            self.hemi_cuts = dr.zeros(mi.UInt32, cut_count(B)) if needs_hemi_cdf else None
             self.cos_integral, self.max_cos = self._cosine_tables()
             self.in_bin_bound, self.in_bin_scale, self.in_bin_misses = (self._in_bin_tables() if needs_in_bin
                                                                         else (None, None, None))
-            self.in_bin_miss = dr.zeros(mi.Float, C * NB) if needs_in_bin else None
         self.refinement = (BinRefinement(self.bins, C * B, sub_resolution, refine_share, refine_capacity)
                            if sub_resolution > 1 else None)
         self.sub_resolution = sub_resolution
@@ -190,6 +205,28 @@ class RadianceRecord:
     def pair(self, cell: mi.UInt32, n: mi.Vector3f) -> mi.UInt32:
         """Flat (cell, normal bin) index of a cell and a unit normal."""
         return cell * self.normal_bins.count + self.normal_bins.index(n)
+
+    def hemi_probability(self, row: mi.UInt32, k: mi.UInt32, active: mi.Bool) -> mi.Float:
+        """P_k of bin ``k`` in CDF row ``row`` of ``hemi_cdf``: the step of the CDF, exactly as its sampler draws it."""
+        first = row * self.bins.count
+        above = dr.gather(mi.Float, self.hemi_cdf, first + k, active)
+        return above - dr.gather(mi.Float, self.hemi_cdf, first + k - 1, active & (k > 0))
+
+    def hemi_density_at(self, row: mi.UInt32, k: mi.UInt32, active: mi.Bool) -> mi.Float:
+        """``hemi_density`` of bin ``k`` in row ``row``: one gather where the density needed three."""
+        return dr.gather(mi.Float, self.hemi_density, row * self.bins.count + k, active)
+
+    def memo(self, pair: mi.UInt32, active: mi.Bool) -> PairMemo:
+        """The memo of (cell, normal bin) pairs ``pair``, read with one packet gather."""
+        fields = dr.gather(mi.Vector4f, self.pair_memo, pair, active)
+        return PairMemo(norm=fields.x, row=mi.UInt32(fields.y), bound=fields.z, in_bin_miss=fields.w)
+
+    def memo_columns(self) -> dict:
+        """Every pair's memo as NumPy columns named like :class:`PairMemo`'s fields (for checks and inspection)."""
+        import numpy as np
+
+        columns = np.array(self.pair_memo).reshape(-1, PAIR_FIELDS)
+        return {"norm": columns[:, 0], "row": columns[:, 1], "bound": columns[:, 2], "in_bin_miss": columns[:, 3]}
 
     # ------------------------------------------------------------ precomputation
     def _cosine_tables(self) -> tuple[mi.Float, mi.Float]:
@@ -337,8 +374,9 @@ class RadianceRecord:
         cos_integral = dr.gather(mi.Float, self.cos_integral, nb * B + k)
         max_cos = dr.gather(mi.Float, self.max_cos, nb * B + k)
 
-        dr.scatter(self.norm, dr.block_reduce(dr.ReduceOp.Add, p * cos_integral, B), pairs)
-        dr.scatter(self.bound, dr.block_reduce(dr.ReduceOp.Max, p * max_cos, B), pairs)
+        norm = dr.block_reduce(dr.ReduceOp.Add, p * cos_integral, B)
+        bound = dr.block_reduce(dr.ReduceOp.Max, p * max_cos, B)
+        row = in_bin_miss = dr.zeros(mi.Float, count)
         if self.needs_value:
             q = dr.gather(mi.Float, self.q, cell * B + k)
             dr.scatter(self.value, dr.block_reduce(dr.ReduceOp.Add, q * cos_integral, B), pairs)
@@ -349,13 +387,17 @@ class RadianceRecord:
                 if self.refinement:     # a refined bin draws its direction without rejection
                     miss = dr.select(self.refinement.sampled(cell * B + k, True), 0, miss)
                 total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, B), flat // B)
-                dr.scatter(self.in_bin_miss, dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, B), pairs)
+                in_bin_miss = dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, B)
             else:
                 weight = p * dr.maximum(cos_integral, dr.select(max_cos > 0, REACHABLE_FLOOR * self.bins.solid_angle, 0))
             self.hemi_cdf = normalised_cdf(weight, B)
             self.hemi_cuts = cut_points(self.hemi_cdf, B)
-            dr.scatter(self.row_of, dr.arange(mi.UInt32, count), pairs)
-        dr.eval(self.norm, self.bound, self.value, self.hemi_cdf, self.hemi_cuts, self.row_of, self.in_bin_miss)
+            step = self.hemi_probability(flat // B, k, True)
+            self.hemi_density = (step * dr.gather(mi.Float, self.in_bin_scale, nb * B + k) if self.needs_in_bin
+                                 else step / self.bins.solid_angle)
+            row = dr.arange(mi.Float, count)
+        dr.scatter(self.pair_memo, mi.Vector4f(norm, row, bound, in_bin_miss), pairs)
+        dr.eval(self.pair_memo, self.value, self.hemi_cdf, self.hemi_cuts, self.hemi_density)
         return count
 
     @staticmethod
@@ -365,15 +407,15 @@ class RadianceRecord:
                       refine_capacity: int = 0) -> int:
         """The bytes of the tables whose size is fixed when a record is built with these arguments, computed
         without allocating anything (so that an oversized table can be refused before it is built). The CDF rows of
-        the visited pairs (``hemi_cdf``, one row of 2·D² floats and G + 1 cut points per pair) come on top: they
+        the visited pairs (``hemi_cdf`` and ``hemi_density``, rows of 2·D² floats, and G + 1 cut points per pair) come on top: they
         grow with the visits, and :meth:`_update_memo` checks them against ``row_memory_limit``."""
         C, B, NB = spatial_resolution ** 3, 2 * directional_resolution ** 2, 6 * normal_resolution ** 2
-        cuts = cut_count(B) + 1
+        cuts = cut_count(B)
         total = C * B * (8 + 8 + 8 + 8 + 4 + 4)                # totals, pass sums, Q, policy
         if needs_cdf:
             total += 4 * C * (B + cuts)                          # CDF and its cut points
         if needs_memo or needs_hemi_cdf or needs_in_bin or needs_value:
-            total += 4 * ((6 if needs_in_bin else 5) * C * NB + ((B + cuts) if needs_hemi_cdf else 0)
+            total += 4 * ((PAIR_FIELDS + 2) * C * NB + ((2 * B + cuts) if needs_hemi_cdf else 0)
                           + (5 if needs_in_bin else 2) * NB * B)   # placeholder row, cosine and in-bin tables
         if sub_resolution > 1:
             total += BinRefinement.planned_bytes(C * B, sub_resolution, refine_capacity)
@@ -382,8 +424,7 @@ class RadianceRecord:
     def memory_bytes(self) -> int:
         arrays = [self.acc_sum, self.acc_count, self.pass_targets, self.q, self.policy, self.cdf, self.cdf_cuts]
         if self.needs_pairs:
-            arrays += [self.visited, self.row_of, self.norm, self.bound, self.value, self.hemi_cdf, self.hemi_cuts,
-                       self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_scale, self.in_bin_misses,
-                       self.in_bin_miss]
+            arrays += [self.visited, self.pair_memo, self.value, self.hemi_cdf, self.hemi_density, self.hemi_cuts,
+                       self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_scale, self.in_bin_misses]
         refined = self.refinement.memory_bytes() if self.refinement else 0
         return refined + sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays if a is not None)

@@ -93,7 +93,7 @@ class BinRefinement:
         """Bytes of the tables of a refinement built with these arguments (all allocated up front)."""
         sub = resolution * resolution
         return (4 * entries + 2 * 4 * ((entries + 31) // 32) + 4 * capacity
-                + capacity * (sub * (8 + 8 + 16 + 4 + 4) + 4 * (cut_count(sub) + 1)))
+                + capacity * (sub * (8 + 8 + 16 + 4 + 4) + 4 * cut_count(sub)))
 
     def memory_bytes(self) -> int:
         arrays = [self.slot, self.sampling_mask, self.learning_mask, self.entry_of, self.acc_sum, self.acc_count,
@@ -213,6 +213,5 @@ class BinRefinement:
         cdf = normalised_cdf(probability, self.sub)
         dr.scatter(self.cdf, cdf, flat)
         cuts = cut_points(cdf, self.sub)
-        G = cut_count(self.sub) + 1
-        dr.scatter(self.cuts, cuts, dr.arange(mi.UInt32, self.used * G))
+        dr.scatter(self.cuts, cuts, dr.arange(mi.UInt32, self.used * cut_count(self.sub)))
         dr.eval(self.probability, self.cdf, self.cuts)

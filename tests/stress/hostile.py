@@ -62,8 +62,11 @@ def fill_record(record, sums: np.ndarray, counts: np.ndarray) -> None:
 
 def record_arrays(record) -> dict:
     """Every table an update builds, as NumPy arrays."""
-    names = ["q", "policy", "cdf", "norm", "bound", "value", "hemi_cdf"]
-    return {name: np.array(getattr(record, name, None)) for name in names if getattr(record, name, None) is not None}
+    names = ["q", "policy", "cdf", "value", "hemi_cdf", "hemi_density"]
+    arrays = {name: np.array(getattr(record, name)) for name in names if getattr(record, name, None) is not None}
+    if record.needs_pairs:
+        arrays.update(record.memo_columns())
+    return arrays
 
 
 def record_violations(record) -> list[str]:

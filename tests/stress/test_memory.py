@@ -42,7 +42,7 @@ def test_planned_table_size_is_what_built_tables_report(rule, figures):
             record.update(spp_done=8)
             visited = record.memory_bytes()
             # every pair's row, in place of the placeholder row a fresh record holds
-            row = (record.bins.count + cut_count(record.bins.count) + 1) * 4     # CDF and cut points
+            row = (2 * record.bins.count + cut_count(record.bins.count)) * 4     # CDF, density and cut points
             rows = (record.cells * record.normal_bins.count - 1) * row if record.needs_hemi_cdf else 0
             assert planned + rows == visited, f"{sampler} ({proposal}): planned {planned} + rows {rows} bytes, " \
                                               f"all pairs visited {visited}"
@@ -64,7 +64,7 @@ def test_refined_bins_are_planned_and_bounded():
         record.update(spp_done=spp_done)
         stats.append(record.refined_stats)
     assert stats[-1]["refined_bins"] == 5 and stats[-1]["refinements_refused"] == 139
-    rows = (record.cells * record.normal_bins.count - 1) * (record.bins.count + cut_count(record.bins.count) + 1) * 4
+    rows = (record.cells * record.normal_bins.count - 1) * (2 * record.bins.count + cut_count(record.bins.count)) * 4
     assert record.memory_bytes() == fresh + rows     # the visited pairs' rows only: the refinement did not grow
 
 
