@@ -24,9 +24,9 @@ EXIT_INTERRUPTED = 130
 
 #: What ``bench`` times by default: the shared scenes (method.md) and every kind of method.
 BENCH_SCENES = ("cornell-box", "veach-ajar", "staircase2", "living-room")
-#: Benchmarked beside them: the project's scene without a guidable surface (256x256 at scale 1), where every guided
-#: method should cost what brdf does.
-BENCH_EXTRA_SCENES = ("glossy-box:1",)
+#: Benchmarked beside them, at 256x256 (scale 1): the project's scenes where guided methods have nothing to guide and
+#: should cost what brdf does (mirror-box: every method; glossy-box: the methods guiding purely diffuse surfaces).
+BENCH_EXTRA_SCENES = ("glossy-box:1", "mirror-box:1")
 #: The paper's hemi_inv without the BSDF share, shown beside ours in the single-bounce weight table.
 PURE_HEMI_INV = ("mc-hemi_inv-pure", "sarsa-hemi_inv-pure", "expected_sarsa-hemi_inv-pure")
 #: What ``bench --part pass-schedule`` times by default: the methods whose passes differ (``ours`` keeps the paper's
@@ -142,7 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="cost: cost per spp and its breakdown (default); pass-schedule: renders with fixed and "
                        "with growing passes (results/pass_schedule)")
     bench.add_argument("--scenes", help="comma-separated NAME:SCALE list (default: cost: the four shared scenes at 1/4 "
-                       "resolution and glossy-box, the scene without a guidable surface; pass-schedule: those of "
+                       "resolution, glossy-box and mirror-box, the scenes with nothing to guide; pass-schedule: those of "
                        "config/paper.yaml's equal-time experiment)")
     bench.add_argument("--passes", type=_positive_int, default=8, help="timed passes per integrator (default 8)")
     bench.add_argument("--methods", help="methods timed against brdf (comma-separated; default: cost: every kind, "

@@ -217,12 +217,25 @@ class GridGuide(Guide):
             if self.record_table.needs_pairs:
                 self._locate(si, bsdf, active)     # marks the pairs this pass visits: memoised for the next pass
             return bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
-        return self._sample_vertex(sampler, si, bsdf, bsdf_ctx, self._vertex(si, bsdf, active), active)
+        return self._sample_vertex(sampler, si, bsdf, bsdf_ctx, active)
 
     @dr.syntax
-    def _sample_vertex(self, sampler, si, bsdf, bsdf_ctx, vertex, active):
-        """The guide where the vertex is guided, one BSDF sample elsewhere: a branch, not a select, so that packets
-        of lanes without a guided vertex (glossy, delta, emitters, escaped paths) pay only the mask test."""
+    def _sample_vertex(self, sampler, si, bsdf, bsdf_ctx, active):
+        """The guide where the BSDF is one it guides, one BSDF sample elsewhere: a branch, not a select, so that
+        packets of lanes with nothing to guide (delta and, unless ``guided_bsdfs`` is smooth, glossy BSDFs; emitters;
+        escaped paths) pay only the BSDF flags test, not even the vertex's cell."""
+        guidable_lanes = active & guidable(bsdf, self.smooth)
+        if guidable_lanes:
+            bs, weight = self._sample_guidable(sampler, si, bsdf, bsdf_ctx, guidable_lanes)
+        else:
+            others = active & ~guidable_lanes
+            bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(others), sampler.next_2d(others), others)
+        return bs, weight
+
+    @dr.syntax
+    def _sample_guidable(self, sampler, si, bsdf, bsdf_ctx, active):
+        """The guide where the vertex's (cell, normal bin) pair has its memo, one BSDF sample elsewhere."""
+        vertex = self._vertex(si, bsdf, active)
         if vertex.guided:
             bs, weight = self._guided_sample(sampler, si, bsdf, bsdf_ctx, vertex)
         else:

@@ -87,14 +87,17 @@ class _TreeGuide(Guide):
         """Lanes that mix in the D-tree: a BSDF with a smooth lobe (without ``guide_delta_mixtures``: a BSDF
         without any delta lobe), and a D-tree that has seen energy (with ``uniform_empty_dtrees``, once the trees
         are built, any D-tree: one without energy is uniform, its quadrant probabilities 1/4 each)."""
-        flags = bsdf.flags()
-        if self.guide_delta_mixtures:
-            guidable = mi.has_flag(flags, mi.BSDFFlags.Smooth)
-        else:
-            guidable = ~mi.has_flag(flags, mi.BSDFFlags.Delta)
         # Opaque: the kernel takes the flag as a parameter, so the first build does not recompile the render.
         empty_guided = dr.opaque(mi.Bool, self.uniform_empty_dtrees and self._built)
-        return active & guidable & (dr.gather(mi.Bool, self._sampling.has_energy, tree, active) | empty_guided)
+        guidable = self._guidable(bsdf, active)
+        return guidable & (dr.gather(mi.Bool, self._sampling.has_energy, tree, guidable) | empty_guided)
+
+    def _guidable(self, bsdf: mi.BSDFPtr, active) -> mi.Bool:
+        """Lanes whose BSDF has a lobe the D-tree may guide (the BSDF flags alone)."""
+        flags = bsdf.flags()
+        if self.guide_delta_mixtures:
+            return active & mi.has_flag(flags, mi.BSDFFlags.Smooth)
+        return active & ~mi.has_flag(flags, mi.BSDFFlags.Delta)
 
     def pdf(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, wo, active=True):
         """The density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si`` (of its
@@ -107,13 +110,26 @@ class _TreeGuide(Guide):
         p_tree = self._sampling.pdf_dir(tree, wo_world, guided)
         return dr.select(guided, self.bsdf_fraction * p_bsdf + (1 - self.bsdf_fraction) * p_tree, p_bsdf)
 
+    @dr.syntax
     def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active):
+        """The mixture where the BSDF has a lobe to guide, one BSDF sample elsewhere: a branch, not a select, so that
+        packets of lanes with nothing to guide (delta BSDFs, emitters, escaped paths) skip the trees' descents."""
         active = mi.Bool(active)
+        s1 = sampler.next_1d(active)
+        s2 = sampler.next_2d(active)
+        guidable = self._guidable(bsdf, active)
+        if guidable:
+            bs, weight = self._mixture_sample(si, bsdf, bsdf_ctx, s1, s2, guidable)
+        else:
+            bs, weight = bsdf.sample(bsdf_ctx, si, s1, s2, active & ~guidable)
+        return bs, weight
+
+    def _mixture_sample(self, si, bsdf, bsdf_ctx, s1, s2, active):
+        """One sample of the mixture of BSDF sampling and the vertex's D-tree for the samples ``s1``, ``s2`` (BSDF
+        sampling alone where the D-tree holds no energy)."""
         tree = self._locate(si.p, active)
         guided = self.guided_mask(tree, bsdf, active)
         frac = dr.select(guided, self.bsdf_fraction, 1.0)
-        s1 = sampler.next_1d(active)
-        s2 = sampler.next_2d(active)
         use_bsdf = s1 < frac
         bs, bsdf_weight = bsdf.sample(bsdf_ctx, si, dr.minimum(s1 / frac, ONE_MINUS_EPS), s2, active & use_bsdf)
         # Only BSDF sampling reaches a delta lobe: its weight is the BSDF's over the BSDF share (Tom94's sampleMat).
