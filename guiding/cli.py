@@ -142,8 +142,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="cost: cost per spp and its breakdown (default); pass-schedule: renders with fixed and "
                        "with growing passes (results/pass_schedule)")
     bench.add_argument("--scenes", help="comma-separated NAME:SCALE list (default: cost: the four shared scenes at 1/4 "
-                       "resolution, glossy-box and mirror-box, the scenes with nothing to guide; pass-schedule: those of "
-                       "config/paper.yaml's equal-time experiment)")
+                       "resolution, glossy-box and mirror-box, the scenes with nothing to guide; pass-schedule: those "
+                       "of config/paper.yaml's equal-time experiment)")
     bench.add_argument("--passes", type=_positive_int, default=8, help="timed passes per integrator (default 8)")
     bench.add_argument("--methods", help="methods timed against brdf (comma-separated; default: cost: every kind, "
                        "pass-schedule: brdf, ours, ours-plus, sdtree)")
@@ -165,8 +165,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "rule x sampler, and learning (MAE, hit rate) at equal spp")
     validate.add_argument("--out", default="results")
     validate.add_argument("--quick", action="store_true", help="smaller budgets (a smoke run)")
-    validate.add_argument("--part", choices=("all", "refinement"), default="all",
-                          help="all checks (default), or only ours-plus's refined bins at equal spp")
+    validate.add_argument("--part", choices=("all", "refinement", "learning"), default="all",
+                          help="all checks (default), or only ours-plus's refined bins at equal spp, or only the "
+                          "equal-spp MAE of every method (results/learning.md)")
     _add_backend_options(validate)
 
     baseline = commands.add_parser("sdtree-baseline", help="SD-tree baseline figures written to results/: equal-spp "
@@ -397,6 +398,7 @@ def _command_bench(args) -> None:
                                  breakdown=not args.no_breakdown)
     command = (f"python -m guiding bench --scenes {args.scenes} --methods {args.methods} --passes {args.passes}"
                + (f" --variant {args.variant}" if args.variant != "auto" else "")
+               + (f" --threads {args.threads}" if args.threads else "")
                + (" --no-breakdown" if args.no_breakdown else ""))
     write_table(frame, out / f"benchmark_{tag}", "Cost per spp of every method vs `brdf` and Mitsuba `path` (same "
                 f"run, {args.passes} interleaved passes of 8 spp after 2 warm-up passes, max depth 16; `trace-only`: "
@@ -456,10 +458,13 @@ def _command_validate(args) -> None:
     from .bench import write_table
     import pandas as pd
 
-    from .validation import (UNBIASEDNESS_METHODS, UNBIASEDNESS_SCENES, bounce_weight_table, learning_table,
+    from .validation import (UNBIASEDNESS_METHODS, UNBIASEDNESS_SCENES, bounce_weight_table,
                              refinement_table, smooth_share_table, unbiasedness_table)
 
     device = device_name(variant)
+    if args.part == "learning":
+        _validate_learning(args, out, device)
+        return
     spp, reference_spp = (32, 256) if args.quick else (512, 8192)
     refinement = refinement_table(spp=spp, reference_spp=reference_spp)
     write_table(refinement, out / "ours_plus_refinement", f"ours-plus with and without (sub_resolution 1) its "
@@ -484,15 +489,24 @@ def _command_validate(args) -> None:
                 "of training (scale 0.1; 1000 vertices x 4096 directions; ratios to the vertex albedo)",
                 device, "python -m guiding validate")
     print(weights.to_string(index=False))
-    learning = learning_table(spp=64 if args.quick else 256, reference_spp=256 if args.quick else 4096)
-    write_table(learning, out / "learning", "Equal spp on door-ajar (scale 0.25): MAE vs a `path` reference",
-                device, "python -m guiding validate")
-    print(learning.to_string(index=False))
+    _validate_learning(args, out, device)
     share = smooth_share_table(spp=32 if args.quick else 256, reference_spp=256 if args.quick else 8192)
     write_table(share, out / "ours_plus_share", "ours-plus's least BSDF share at glossy vertices "
                 "(`smooth_bsdf_share`) at equal spp (scale 1/16, seeds 0 and 1): MAE vs a `path` reference",
                 device, "python -m guiding validate")
     print(share.to_string(index=False))
+
+
+def _validate_learning(args, out, device: str) -> None:
+    """results/learning.md: every method's MAE and hit rate at equal spp on door-ajar."""
+    from .bench import write_table
+    from .validation import learning_table
+
+    learning = learning_table(spp=64 if args.quick else 256, reference_spp=256 if args.quick else 4096)
+    command = "python -m guiding validate" + (" --part learning" if args.part == "learning" else "")
+    write_table(learning, out / "learning", "Equal spp on door-ajar (scale 0.25): MAE vs a `path` reference",
+                device, command)
+    print(learning.to_string(index=False))
 
 
 def _command_sdtree_baseline(args) -> None:

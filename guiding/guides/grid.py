@@ -373,8 +373,8 @@ class GridGuide(Guide):
         table = self.record_table
         centre = vertex.centre
         if self.proposal == "bins":
-            k = sample_rows(table.hemi_cdf, table.hemi_cuts, vertex.memo.row, table.bins.count, sampler.next_1d(searching),
-                            searching)
+            k = sample_rows(table.hemi_cdf, table.hemi_cuts, vertex.memo.row, table.bins.count,
+                            sampler.next_1d(searching), searching)
             if table.refinement:
                 entry = vertex.cell * table.bins.count + k
                 refined = table.refinement.sampled(entry, searching)

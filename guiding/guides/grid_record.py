@@ -67,7 +67,8 @@ REACHABLE_FLOOR = 0.01
 #: the density. Interior bins accept ~90 % of proposals; bins across the horizon less, and they are rarely drawn.
 IN_BIN_PROPOSALS = 2
 #: Bytes per entry of the visited pairs' CDF rows while they are built: the row (4), its density (4), its weights
-#: and their prefix sums (evaluated by the scan), and the gathered indices; and per cut point: the point and its histogram entry.
+#: and their prefix sums (evaluated by the scan), and the gathered indices; and per cut point: the point and its
+#: histogram entry.
 ROW_BUILD_BYTES = 20
 CUT_BUILD_BYTES = 8
 #: Floats per pair in ``pair_memo`` (:class:`PairMemo`).

@@ -14,7 +14,8 @@ compact pool sized from earlier passes would still have needed about 100 MiB in 
 Russian-roulette depth before the guide has learned anything) and a fallback for paths that find it full. Local
 memory needs neither: it is sized by ``max_depth`` per lane in flight, and no vertex is ever dropped.
 
-**Entry** (:class:`VertexLog`), ``max_depth`` per path, entry ``i`` for vertex ``i``: ``emitted`` (RGB, the
+**Entry** (:class:`VertexLog`), ``max_depth`` per path, entry ``i`` for the path's ``i``-th vertex from its first
+vertex with a target (the vertices before it have nothing to learn and nothing the walk needs): ``emitted`` (RGB, the
 radiance ``Le`` emitted at the vertex towards the previous one), ``weight`` (RGB, ``w = f·cos/pdf`` including
 Russian roulette, 0 where the path ends), ``target`` (UInt32: where the guide records the vertex's estimate, an
 accumulator index of its own; :data:`NO_RECORD` for none) and, if asked for, ``pdf`` (the density of the sampled
@@ -77,8 +78,10 @@ class VertexLog:
                active: mi.Bool, pdf: mi.Float = None):
         """Log the vertex the active paths are at (arguments as :meth:`Guide.record`'s; ``target`` where its
         estimate goes, ``pdf`` the density of its sampled direction when the log keeps them); returns ``cursor``
-        moved on. Beyond ``max_depth`` vertices a path logs nothing (local memory is not bounds-checked)."""
-        written = mi.Bool(active) & (cursor.n < self.max_depth)
+        moved on. A path's log starts at its first vertex with a target: the walk needs no vertex before it (a path
+        through delta lobes only logs nothing and walks nothing). Beyond ``max_depth`` vertices a path logs nothing
+        (local memory is not bounds-checked)."""
+        written = mi.Bool(active) & (cursor.n < self.max_depth) & ((cursor.n > 0) | (target != NO_RECORD))
         # The walk starts at a path's last vertex with L = 0: a weight there other than 0 (non-finite) would
         # make w·L NaN, so a vertex the path does not continue from logs w = 0.
         entry = self._entry(emitted=mi.Color3f(emitted), weight=mi.Color3f(dr.select(continues, weight, 0)),
