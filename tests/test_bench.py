@@ -2,7 +2,10 @@
 
 import pytest
 
-from guiding.bench import GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, benchmark, target_table
+from guiding.bench import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, benchmark, nothing_to_guide,
+                           target_table)
+from guiding.methods import make_guide
+from guiding.scenes import load_scene
 
 
 def test_breakdown_table_shape():
@@ -25,12 +28,22 @@ def test_breakdown_table_shape():
             assert abs(own + row["increment_ratio"] - row["ratio_to_brdf"]) < 1e-9
     # The statistics variant supplies the guided share (zero: glossy-box has no guidable surface).
     assert frame.set_index("method").loc["ours", "guided_per_ray"] == 0
-    # glossy-box is a scene with nothing to guide for ours (purely diffuse surfaces only), not for the SD-tree;
-    # mirror-box (delta lobes only) for both.
+    # glossy-box has nothing to guide for ours (purely diffuse surfaces only), but glossy lobes for the SD-tree.
+    assert frame.set_index("method")["nothing_to_guide"].to_dict() == {
+        "path": False, TRACE_ONLY: False, "brdf": False, "ours": True, "sdtree": False}
     targets = target_table(frame, "cpu")
     nothing = targets[targets["target"].str.startswith("nothing to guide")]
     assert list(nothing["target"]) == ["nothing to guide: `ours` ≤ 1.05× `brdf`"]
-    frame["scene"] = "mirror-box"
-    nothing = target_table(frame, "cpu").query("target.str.startswith('nothing to guide')", engine="python")
-    assert set(nothing["target"]) == {"nothing to guide: `ours` ≤ 1.05× `brdf`",
-                                      "nothing to guide: `sdtree` ≤ 1.05× `brdf`"}
+    assert "`sdtree` ≤ 1.3× `brdf` per spp" in set(targets["target"])
+
+
+@pytest.mark.parametrize("scene_name, guided", [("mirror-box", set()), ("glossy-box", {"ours-plus", "sdtree",
+                                                                                       "quadtree-grid"}),
+                                                ("cornell", {"ours", "ours-plus", "sarsa-sphere_inv", "sdtree",
+                                                             "quadtree-grid"})])
+def test_nothing_to_guide_comes_from_the_scenes_bsdfs(scene_name, guided):
+    """Which methods have something to guide in a scene follows from the guides' own test of its BSDFs: nothing
+    in the box of delta lobes, only glossy lobes (guided by the smooth guides) in glossy-box."""
+    scene = load_scene(scene_name, 1 / 16)
+    methods = ["ours", "ours-plus", "sarsa-sphere_inv", "sdtree", "quadtree-grid"]
+    assert {m for m in methods if not nothing_to_guide(scene, make_guide(m))} == guided

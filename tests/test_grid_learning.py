@@ -190,3 +190,16 @@ def test_ours_plus_rebuilds_less_often_than_the_paper():
 
     assert make_guide("ours").rebuild_growth == 0
     assert make_guide("ours-plus").rebuild_growth > 0
+
+
+def test_pair_memo_reads_back_every_visited_pairs_row():
+    """The memo packs each visited pair's CDF row with N, M and the miss share (one packet gather): every pair
+    reads back its own row, in the order the rows were built, and N > 0."""
+    record = GridGuide(spatial_resolution=3, directional_resolution=3, rule="sarsa",
+                       sampler="hemi_rej_plus").record_table
+    visited = dr.arange(mi.UInt32, 0, dr.width(record.visited), 3)       # every third pair
+    dr.scatter(record.visited, 1, visited)
+    record.update(spp_done=8)
+    memo = record.memo(visited, True)
+    assert np.array_equal(np.array(memo.row), np.arange(dr.width(visited)))
+    assert (np.array(memo.norm) > 0).all()

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from guiding.driver import PassDriver, pass_seed, render_pass
-
 from guiding.guides.grid import GridGuide
 from guiding.guides.sdtree import SDTreeGuide
 from guiding.integrator import GuidedPathIntegrator
@@ -87,7 +86,6 @@ def test_sdtree_iterations_end_on_pass_boundaries_with_several_passes(cornell):
         assert it.passes >= min(MIN_ITERATION_PASSES, it.spp // 8), it
     assert max(p.spp for p in result.passes) > 8      # the final iteration's passes grew
     assert result.iterations[-1].variance is not None and np.isfinite(result.image).all()
-
 
 
 def test_a_second_render_of_a_trained_grid_guide_rebuilds_from_its_own_spp(cornell):

@@ -42,6 +42,7 @@ class Guide:
       kernel has run (an :class:`UpdateResult`); ``stats()`` at any time; ``records()`` before each pass.
     Device side, traced into the path loop:
       ``new_paths(size, max_depth)`` builds the per-path state carried through the loop;
+      ``guides(bsdf, active)`` the lanes whose BSDF it may guide (the others are BSDF-sampled);
       ``sample(...)`` draws the next direction;
       ``record(...)`` hands the guide what the path saw at a vertex (learning rules live here);
       ``finish_paths(state)`` runs once after the loop (e.g. the backward walk of Monte Carlo learning).
@@ -115,6 +116,11 @@ class Guide:
 
     def finish_paths(self, state) -> None:
         """Called once after the path loop with the final per-path state."""
+
+    def guides(self, bsdf: mi.BSDFPtr, active: mi.Bool) -> mi.Bool:
+        """The lanes whose BSDF this guide may guide, from its flags alone (elsewhere it samples the BSDF and pays
+        nothing else); BSDF sampling guides none."""
+        return active & False
 
     def pdf(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, wo: mi.Vector3f,
             active: mi.Bool) -> mi.Float:

@@ -224,7 +224,7 @@ class GridGuide(Guide):
         """The guide where the BSDF is one it guides, one BSDF sample elsewhere: a branch, not a select, so that
         packets of lanes with nothing to guide (delta and, unless ``guided_bsdfs`` is smooth, glossy BSDFs; emitters;
         escaped paths) pay only the BSDF flags test, not even the vertex's cell."""
-        guidable_lanes = active & guidable(bsdf, self.smooth)
+        guidable_lanes = self.guides(bsdf, active)
         if guidable_lanes:
             bs, weight = self._sample_guidable(sampler, si, bsdf, bsdf_ctx, guidable_lanes)
         else:
@@ -280,6 +280,9 @@ class GridGuide(Guide):
         bs.sampled_type = dr.select(use_guide, mi.UInt32(mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
         bs.eta = dr.select(use_guide, 1.0, bs.eta)
         return bs, weight
+
+    def guides(self, bsdf, active) -> mi.Bool:
+        return active & guidable(bsdf, self.smooth)
 
     def pdf(self, si, bsdf, bsdf_ctx, wo, active) -> mi.Float:
         """Density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si``."""

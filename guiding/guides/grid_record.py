@@ -80,7 +80,7 @@ class PairMemo:
     """What the samplers read about a vertex's (cell, normal bin) pair (:meth:`RadianceRecord.memo`)."""
 
     norm: mi.Float          # N at the normal bin's centre; 0: no memo yet (the pair was not visited before)
-    row: mi.UInt32          # the pair's row of ``hemi_cdf`` (stored as a float: exact, rows stay far below 2^24)
+    row: mi.UInt32          # the pair's row of ``hemi_cdf`` (its bits stored in a float slot)
     bound: mi.Float         # M ≥ max P·cos(ω, n) over the normal bin
     in_bin_miss: mi.Float   # the chance that every in-bin proposal is rejected (``bins`` proposal)
 
@@ -220,14 +220,16 @@ class RadianceRecord:
     def memo(self, pair: mi.UInt32, active: mi.Bool) -> PairMemo:
         """The memo of (cell, normal bin) pairs ``pair``, read with one packet gather."""
         fields = dr.gather(mi.Vector4f, self.pair_memo, pair, active)
-        return PairMemo(norm=fields.x, row=mi.UInt32(fields.y), bound=fields.z, in_bin_miss=fields.w)
+        return PairMemo(norm=fields.x, row=dr.reinterpret_array(mi.UInt32, fields.y), bound=fields.z,
+                        in_bin_miss=fields.w)
 
     def memo_columns(self) -> dict:
         """Every pair's memo as NumPy columns named like :class:`PairMemo`'s fields (for checks and inspection)."""
         import numpy as np
 
         columns = np.array(self.pair_memo).reshape(-1, PAIR_FIELDS)
-        return {"norm": columns[:, 0], "row": columns[:, 1], "bound": columns[:, 2], "in_bin_miss": columns[:, 3]}
+        return {"norm": columns[:, 0], "row": columns[:, 1].view(np.uint32), "bound": columns[:, 2],
+                "in_bin_miss": columns[:, 3]}
 
     # ------------------------------------------------------------ precomputation
     def _cosine_tables(self) -> tuple[mi.Float, mi.Float]:
@@ -377,7 +379,7 @@ class RadianceRecord:
 
         norm = dr.block_reduce(dr.ReduceOp.Add, p * cos_integral, B)
         bound = dr.block_reduce(dr.ReduceOp.Max, p * max_cos, B)
-        row = in_bin_miss = dr.zeros(mi.Float, count)
+        row, in_bin_miss = dr.zeros(mi.UInt32, count), dr.zeros(mi.Float, count)
         if self.needs_value:
             q = dr.gather(mi.Float, self.q, cell * B + k)
             dr.scatter(self.value, dr.block_reduce(dr.ReduceOp.Add, q * cos_integral, B), pairs)
@@ -396,8 +398,8 @@ class RadianceRecord:
             step = self.hemi_probability(flat // B, k, True)
             self.hemi_density = (step * dr.gather(mi.Float, self.in_bin_scale, nb * B + k) if self.needs_in_bin
                                  else step / self.bins.solid_angle)
-            row = dr.arange(mi.Float, count)
-        dr.scatter(self.pair_memo, mi.Vector4f(norm, row, bound, in_bin_miss), pairs)
+            row = dr.arange(mi.UInt32, count)
+        dr.scatter(self.pair_memo, mi.Vector4f(norm, dr.reinterpret_array(mi.Float, row), bound, in_bin_miss), pairs)
         dr.eval(self.pair_memo, self.value, self.hemi_cdf, self.hemi_cuts, self.hemi_density)
         return count
 
@@ -408,8 +410,8 @@ class RadianceRecord:
                       refine_capacity: int = 0) -> int:
         """The bytes of the tables whose size is fixed when a record is built with these arguments, computed
         without allocating anything (so that an oversized table can be refused before it is built). The CDF rows of
-        the visited pairs (``hemi_cdf`` and ``hemi_density``, rows of 2·D² floats, and G + 1 cut points per pair) come on top: they
-        grow with the visits, and :meth:`_update_memo` checks them against ``row_memory_limit``."""
+        the visited pairs (``hemi_cdf`` and ``hemi_density``, rows of 2·D² floats, and G packed cut points per pair)
+        come on top: they grow with the visits, and :meth:`_update_memo` checks them against ``row_memory_limit``."""
         C, B, NB = spatial_resolution ** 3, 2 * directional_resolution ** 2, 6 * normal_resolution ** 2
         cuts = cut_count(B)
         total = C * B * (8 + 8 + 8 + 8 + 4 + 4)                # totals, pass sums, Q, policy

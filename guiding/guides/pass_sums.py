@@ -23,10 +23,15 @@ def add_target(sums: mi.Float64, index: mi.UInt32, target: mi.Float, active: mi.
     """Add ``target`` to entry ``index`` of ``sums``, and one to its count: one packet scatter of the pair (two
     scatters cost twice the cache misses, and on the CPU two loops over the lanes)."""
     mode = dr.ReduceMode.Expand if dr.width(sums) <= dr.expand_threshold() else dr.ReduceMode.Auto
-    pair = dr.cuda.ad.Array2f64 if dr.backend_v(sums) == dr.JitBackend.CUDA else dr.llvm.ad.Array2f64
-    dr.scatter_reduce(dr.ReduceOp.Add, sums, pair(mi.Float64(target), 1), index, active, mode=mode)
+    dr.scatter_reduce(dr.ReduceOp.Add, sums, _pair_type(sums)(mi.Float64(target), 1), index, active, mode=mode)
 
 
 def entry_sums(sums: mi.Float64, index: mi.UInt32) -> tuple[mi.Float64, mi.Float64]:
     """The sum and the count of entries ``index``."""
-    return dr.gather(mi.Float64, sums, 2 * index), dr.gather(mi.Float64, sums, 2 * index + 1)
+    pair = dr.gather(_pair_type(sums), sums, index)
+    return pair.x, pair.y
+
+
+def _pair_type(sums: mi.Float64) -> type:
+    """The (sum, count) pair of float64 on the backend of ``sums`` (Mitsuba has no two-component float64 type)."""
+    return dr.cuda.ad.Array2f64 if dr.backend_v(sums) == dr.JitBackend.CUDA else dr.llvm.ad.Array2f64

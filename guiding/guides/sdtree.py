@@ -89,10 +89,10 @@ class _TreeGuide(Guide):
         are built, any D-tree: one without energy is uniform, its quadrant probabilities 1/4 each)."""
         # Opaque: the kernel takes the flag as a parameter, so the first build does not recompile the render.
         empty_guided = dr.opaque(mi.Bool, self.uniform_empty_dtrees and self._built)
-        guidable = self._guidable(bsdf, active)
+        guidable = self.guides(bsdf, active)
         return guidable & (dr.gather(mi.Bool, self._sampling.has_energy, tree, guidable) | empty_guided)
 
-    def _guidable(self, bsdf: mi.BSDFPtr, active) -> mi.Bool:
+    def guides(self, bsdf: mi.BSDFPtr, active) -> mi.Bool:
         """Lanes whose BSDF has a lobe the D-tree may guide (the BSDF flags alone)."""
         flags = bsdf.flags()
         if self.guide_delta_mixtures:
@@ -117,7 +117,7 @@ class _TreeGuide(Guide):
         active = mi.Bool(active)
         s1 = sampler.next_1d(active)
         s2 = sampler.next_2d(active)
-        guidable = self._guidable(bsdf, active)
+        guidable = self.guides(bsdf, active)
         if guidable:
             bs, weight = self._mixture_sample(si, bsdf, bsdf_ctx, s1, s2, guidable)
         else:
