@@ -138,9 +138,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = commands.add_parser("bench", help="cost per spp of every method vs `brdf` and Mitsuba's `path` "
                                 "(same process, interleaved passes)")
-    bench.add_argument("--part", choices=["cost", "pass-schedule"], default="cost",
+    bench.add_argument("--part", choices=["cost", "pass-schedule", "kernel-size"], default="cost",
                        help="cost: cost per spp and its breakdown (default); pass-schedule: renders with fixed and "
-                       "with growing passes (results/pass_schedule)")
+                       "with growing passes (results/pass_schedule); kernel-size: each method's render kernel in "
+                       "machine instructions (CPU; results/bench/kernel_instructions)")
     bench.add_argument("--scenes", help="comma-separated NAME:SCALE list (default: cost: the four shared scenes at 1/4 "
                        "resolution, glossy-box and mirror-box, the scenes with nothing to guide; pass-schedule: those "
                        "of config/paper.yaml's equal-time experiment)")
@@ -369,9 +370,9 @@ def _command_bench(args) -> None:
     from .backend import set_variant
     from .scenes import find_scene
 
-    schedule = args.part == "pass-schedule"
-    args.scenes = args.scenes or ",".join(PASS_SCHEDULE_SCENES if schedule else
-                                          [*(f"{s}:0.25" for s in BENCH_SCENES), *BENCH_EXTRA_SCENES])
+    schedule, size = args.part == "pass-schedule", args.part == "kernel-size"
+    args.scenes = args.scenes or ",".join(PASS_SCHEDULE_SCENES if schedule else [f"{s}:0.0625" for s in BENCH_SCENES]
+                                          if size else [*(f"{s}:0.25" for s in BENCH_SCENES), *BENCH_EXTRA_SCENES])
     args.methods = args.methods or ",".join(PASS_SCHEDULE_METHODS if schedule else BENCH_METHODS)
     args.out = args.out or ("results/pass_schedule" if schedule else "results/bench")
     scenes = _parse_scene_list(args.scenes)
@@ -387,6 +388,15 @@ def _command_bench(args) -> None:
 
     device = device_name(variant)
     tag = "gpu" if variant.startswith("cuda") else "cpu"
+    if size:
+        from .kernel_size import kernel_table
+
+        frame = kernel_table(scenes, [m for m in args.methods.split(",") if m])
+        write_table(frame, out / "kernel_instructions", "Machine instructions of each method's render kernel (the "
+                    "largest module compiled in its first passes; see guiding/kernel_size.py)", device,
+                    f"python -m guiding bench --part kernel-size --scenes {args.scenes} --methods {args.methods}")
+        print(frame.to_string(index=False))
+        return
     if schedule:
         frame = pass_schedule_table(scenes, [m for m in args.methods.split(",") if m])
         write_table(frame, out / f"pass_schedule_{tag}", "Fixed against growing passes: counted seconds of 512-spp "

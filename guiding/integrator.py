@@ -123,7 +123,8 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
 
             # ------------------- Direction sampling (the guide) -------------------
             bsdf = si.bsdf(ray)
-            bs, weight = guide.sample(scene, sampler, si, bsdf, bsdf_ctx, continues)
+            vertex = guide.locate(si, bsdf, continues)
+            bs, weight = guide.sample(scene, sampler, si, bsdf, bsdf_ctx, continues, vertex)
             weight = dr.select(continues, weight, 0)
 
             # -------------------------- Russian roulette --------------------------
@@ -136,7 +137,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
 
             # ----------------------------- Learning -----------------------------
             if dr.hint(records, mode="scalar"):
-                path_state = guide.record(path_state, si, emitted, bs, weight, continues, active)
+                path_state = guide.record(path_state, si, emitted, bs, weight, continues, active, vertex)
 
             # --------------------------- Next segment ---------------------------
             β *= weight

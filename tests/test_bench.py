@@ -4,6 +4,7 @@ import pytest
 
 from guiding.bench import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, benchmark, nothing_to_guide,
                            target_table)
+from guiding.kernel_size import kernel_table, parse_disassembly
 from guiding.methods import make_guide
 from guiding.scenes import load_scene
 
@@ -47,3 +48,20 @@ def test_nothing_to_guide_comes_from_the_scenes_bsdfs(scene_name, guided):
     scene = load_scene(scene_name, 1 / 16)
     methods = ["ours", "ours-plus", "sarsa-sphere_inv", "sdtree", "quadtree-grid"]
     assert {m for m in methods if not nothing_to_guide(scene, make_guide(m))} == guided
+
+
+def test_disassembly_log_is_split_into_kernel_modules():
+    log = "\n".join(["jit_var_new(): r1", "jit_llvm_disasm(): ========== 0 ==========",
+                     "jit_llvm_disasm(): 0x00000000   push\trbp", "jit_llvm_disasm(): 0x00000001   ret",
+                     "jit_llvm_disasm(): ========== 1 ==========", "jit_llvm_disasm(): 0x00000000   ret",
+                     "jit_llvm_disasm(): ...", "jit_llvm_disasm(): ========== 0 ==========",
+                     "jit_llvm_disasm(): 0x00000000   ret"])
+    assert parse_disassembly(log) == [[2, 1], [1]]
+
+
+def test_a_guided_kernel_holds_more_instructions_than_brdfs():
+    """The count comes from the disassembly of kernels compiled in a fresh process; the grid guide's bounce adds its
+    lookup, sampler and recording to the BSDF sampling it still does."""
+    frame = kernel_table([("cornell-box", 1 / 16)], ["sarsa-sphere_inv"]).set_index("method")
+    assert frame.loc["brdf", "instructions"] > 1000
+    assert frame.loc["sarsa-sphere_inv", "ratio_to_brdf"] > 1.2

@@ -43,6 +43,7 @@ class Guide:
     Device side, traced into the path loop:
       ``new_paths(size, max_depth)`` builds the per-path state carried through the loop;
       ``guides(bsdf, active)`` the lanes whose BSDF it may guide (the others are BSDF-sampled);
+      ``locate(si, bsdf, active)`` finds the vertex in the guide's structure once, for ``sample`` and ``record``;
       ``sample(...)`` draws the next direction;
       ``record(...)`` hands the guide what the path saw at a vertex (learning rules live here);
       ``finish_paths(state)`` runs once after the loop (e.g. the backward walk of Monte Carlo learning).
@@ -98,19 +99,26 @@ class Guide:
         """Per-path state for ``size`` paths of at most ``max_depth`` vertices (a Dr.Jit PyTree)."""
         return NoPathState()
 
+    def locate(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, active: mi.Bool):
+        """Where vertex ``si`` lies in the guide's structure (the SD-tree's S-tree leaf, say), found once for
+        ``sample`` and ``record`` (the path loop hands it to both); None for a guide that finds nothing ahead."""
+        return None
+
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr,
-               bsdf_ctx: mi.BSDFContext, active: mi.Bool) -> tuple[mi.BSDFSample3f, mi.Spectrum]:
+               bsdf_ctx: mi.BSDFContext, active: mi.Bool, vertex=None) -> tuple[mi.BSDFSample3f, mi.Spectrum]:
         """Sample the direction leaving ``si``; returns the BSDF sample (``wo`` in the local frame, ``pdf`` the
-        density actually used) and the weight ``f·cos/pdf``, exactly like ``BSDF.sample``."""
+        density actually used) and the weight ``f·cos/pdf``, exactly like ``BSDF.sample``. ``vertex``: what
+        :meth:`locate` found at ``si`` (None: the guide finds it itself)."""
         return bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
 
     def record(self, state, si: mi.SurfaceInteraction3f, emitted: mi.Spectrum, bs: mi.BSDFSample3f,
-               weight: mi.Spectrum, continues: mi.Bool, active: mi.Bool):
+               weight: mi.Spectrum, continues: mi.Bool, active: mi.Bool, vertex=None):
         """Learn from vertex ``si`` of the active paths.
 
         ``emitted`` is the radiance emitted at ``si`` towards the previous vertex; ``bs``/``weight`` the direction
         sampled at ``si`` and its weight including the Russian-roulette factor; ``continues`` whether the path goes
-        on from ``si`` (false at escapes, absorption, maximum depth and Russian-roulette termination).
+        on from ``si`` (false at escapes, absorption, maximum depth and Russian-roulette termination); ``vertex``
+        what :meth:`locate` found at ``si`` (None: the guide finds it itself).
         """
         return state
 

@@ -17,7 +17,7 @@ import drjit as dr
 import mitsuba as mi
 
 #: CDF entries read after the cut points: wider intervals (rare: most hold one or two bins) take the full search.
-WINDOW = 4
+WINDOW = 2
 #: A packed interval: its first bin in the low bits (rows of up to 2·256² = 2^17 bins), its width above them,
 #: clamped to WINDOW + 1 (wider ones are searched in full whatever their width).
 LOW_BITS = 17

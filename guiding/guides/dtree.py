@@ -236,13 +236,11 @@ def _prev_float(x):
                       dr.reinterpret_array(mi.Float, dr.reinterpret_array(mi.UInt32, x.y) - 1))
 
 
-def _node_probabilities(prob: mi.Float, base: mi.UInt32, active: mi.Bool):
-    """The four quadrant probabilities of the nodes whose first slot is ``base``, and their sum."""
-    p0 = dr.gather(mi.Float, prob, base, active)
-    p1 = dr.gather(mi.Float, prob, base + 1, active)
-    p2 = dr.gather(mi.Float, prob, base + 2, active)
-    p3 = dr.gather(mi.Float, prob, base + 3, active)
-    return p0, p1, p2, p3, p0 + p1 + p2 + p3
+def _node_probabilities(prob: mi.Float, node: mi.UInt32, active: mi.Bool):
+    """The four quadrant probabilities of nodes ``node``, and their sum: one packet gather (the four are neighbours;
+    on the CPU each gather is a loop over the lanes, so four of one float cost about four times one of four)."""
+    p = dr.gather(mi.Vector4f, prob, node, active)
+    return p.x, p.y, p.z, p.w, p.x + p.y + p.z + p.w
 
 
 def _per_lane(draw, drawn, looked):
@@ -265,8 +263,8 @@ class DeviceForest:
         self.n_nodes = forest.n_nodes
         self.n_trees = forest.n_trees
         child = np.where(forest.child < 0, 0, forest.child).astype(np.uint32).ravel()
-        self.child = mi.UInt32(padded(child))
-        self.prob = mi.Float(padded(forest.probabilities().astype(np.float32).ravel()))
+        self.child = mi.UInt32(padded(child, 4))
+        self.prob = mi.Float(padded(forest.probabilities().astype(np.float32).ravel(), 4))
         self.tree_of_node = mi.UInt32(padded(forest.tree.astype(np.uint32)))
         self.has_energy = mi.Bool(padded(forest.totals() > 0))
         dr.eval(self.child, self.prob, self.tree_of_node, self.has_energy)
@@ -298,11 +296,11 @@ class DeviceForest:
         while go:
             base = node * 4
             if dr.hint(with_pdf or draw is not False, mode="scalar"):
-                p0, p1, p2, p3, total = _node_probabilities(prob, base, go)
+                p0, p1, p2, p3, total = _node_probabilities(prob, node, go)
             if dr.hint(draw is not False, mode="scalar"):
                 # A drawn quadrant depends on the probabilities just read: reading its four children along with them,
                 # rather than the chosen one after the choice, makes one round of memory accesses per level, not two.
-                children = [dr.gather(mi.UInt32, child, base + q, go) for q in range(4)]
+                children = dr.gather(mi.Vector4u, child, node, go)
             if dr.hint(draw is not False, mode="scalar"):
                 px = dr.select(total > 0, (p0 + p2) / total, 0.5)
                 drawn_right = x.x >= px
@@ -330,8 +328,7 @@ class DeviceForest:
             origin += mi.Point2f(dr.select(right, size, 0), dr.select(up, size, 0))
             slot = base + _quadrant(right, up)
             if dr.hint(draw is not False, mode="scalar"):
-                c0, c1, c2, c3 = children
-                node = dr.select(up, dr.select(right, c3, c2), dr.select(right, c1, c0))
+                node = dr.select(up, dr.select(right, children.w, children.z), dr.select(right, children.y, children.x))
             else:
                 node = dr.gather(mi.UInt32, child, slot, go)
             go &= node != 0

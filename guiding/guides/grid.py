@@ -212,7 +212,7 @@ class GridGuide(Guide):
 
     # ============================================================== device side
     # ---------------------------------------------------------------- sampling
-    def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active):
+    def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active, vertex=None):
         if not self.trained:
             if self.record_table.needs_pairs:
                 self._locate(si, bsdf, active)     # marks the pairs this pass visits: memoised for the next pass
@@ -438,7 +438,7 @@ class GridGuide(Guide):
             return self._mc_log.new_paths()
         return SarsaState(dr.full(mi.UInt32, NO_RECORD, size))
 
-    def record(self, state, si, emitted, bs, weight, continues, active):
+    def record(self, state, si, emitted, bs, weight, continues, active, vertex=None):
         # Only segments that leave a guidable surface are recorded: Q is read nowhere else.
         leaves = continues & guidable(si.bsdf(), self.smooth)
         if self.rule == "mc":

@@ -110,8 +110,13 @@ class _TreeGuide(Guide):
         p_tree = self._sampling.pdf_dir(tree, wo_world, guided)
         return dr.select(guided, self.bsdf_fraction * p_bsdf + (1 - self.bsdf_fraction) * p_tree, p_bsdf)
 
+    def locate(self, si, bsdf, active):
+        """The vertex's D-tree (its S-tree leaf, or grid cell), in the lanes whose BSDF has a smooth lobe: the only
+        ones sampled from a D-tree or recorded (found once: the S-tree's descent took a tenth of a path's time)."""
+        return self._locate(si.p, active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth))
+
     @dr.syntax
-    def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active):
+    def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active, vertex=None):
         """The mixture where the BSDF has a lobe to guide, one BSDF sample elsewhere: a branch, not a select, so that
         packets of lanes with nothing to guide (delta BSDFs, emitters, escaped paths) skip the trees' descents."""
         active = mi.Bool(active)
@@ -119,15 +124,15 @@ class _TreeGuide(Guide):
         s2 = sampler.next_2d(active)
         guidable = self.guides(bsdf, active)
         if guidable:
-            bs, weight = self._mixture_sample(si, bsdf, bsdf_ctx, s1, s2, guidable)
+            bs, weight = self._mixture_sample(si, bsdf, bsdf_ctx, s1, s2, guidable, vertex)
         else:
             bs, weight = bsdf.sample(bsdf_ctx, si, s1, s2, active & ~guidable)
         return bs, weight
 
-    def _mixture_sample(self, si, bsdf, bsdf_ctx, s1, s2, active):
-        """One sample of the mixture of BSDF sampling and the vertex's D-tree for the samples ``s1``, ``s2`` (BSDF
-        sampling alone where the D-tree holds no energy)."""
-        tree = self._locate(si.p, active)
+    def _mixture_sample(self, si, bsdf, bsdf_ctx, s1, s2, active, tree=None):
+        """One sample of the mixture of BSDF sampling and the vertex's D-tree ``tree`` (None: located here) for the
+        samples ``s1``, ``s2`` (BSDF sampling alone where the D-tree holds no energy)."""
+        tree = self._locate(si.p, active) if tree is None else tree
         guided = self.guided_mask(tree, bsdf, active)
         frac = dr.select(guided, self.bsdf_fraction, 1.0)
         use_bsdf = s1 < frac
@@ -155,11 +160,11 @@ class _TreeGuide(Guide):
         weight = dr.select(delta, bsdf_weight / self.bsdf_fraction, dr.select(guided, mix_weight, bsdf_weight))
         return bs, weight
 
-    def record(self, state, si, emitted, bs, weight, continues, active):
+    def record(self, state, si, emitted, bs, weight, continues, active, vertex=None):
         # The direction sampled here was traced: record it (delta directions carry no density).
         traced = (mi.Bool(active) & continues & si.is_valid() & (bs.pdf > 0)
                   & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
-        tree = self._locate(si.p, traced)
+        tree = self._locate(si.p, traced) if vertex is None else vertex
         slot = self._recording.slot_of_dir(tree, si.to_world(bs.wo), traced)
         return self._log.append(state, emitted, weight, continues, dr.select(traced, slot, NO_RECORD), active,
                                 pdf=bs.pdf)

@@ -4,7 +4,7 @@ doubling schedule of its training iterations.
 **Layout** (:class:`STree`): ``child`` (index of the first of two adjacent children, -1 for a leaf), ``axis`` and
 ``split`` (midpoint) per node, ``tree`` (the D-tree of a leaf). A leaf splits at its midpoint along its axis; its
 children split along the next axis (x, y, z, x, …), so the root splits along x and a node's axis is its depth mod 3.
-On the device (:meth:`STree.to_device`), two arrays of a word per node.
+On the device (:meth:`STree.to_device`), one array of two words per node.
 """
 
 from __future__ import annotations
@@ -86,12 +86,13 @@ class STree:
         return sources
 
     def to_device(self) -> dict:
-        """The tree for :func:`stree_locate`: per node ``first`` (the first child of an inner node, ``LEAF | D-tree
-        index`` for a leaf) and ``split`` (float32), two gathers per level of the descent; a node's axis follows
-        from its depth."""
+        """The tree for :func:`stree_locate`: per node a pair of words, ``first`` (the first child of an inner node,
+        ``LEAF | D-tree index`` for a leaf) and the bits of ``split`` (float32), read with one packet gather per level
+        of the descent; a node's axis follows from its depth."""
         first = np.array([LEAF | t if c < 0 else c for c, t in zip(self.child, self.tree)], dtype=np.uint32)
         split = np.array([self.split_value(n) for n in range(self.n_nodes)], dtype=np.float32)
-        arrays = {"first": mi.UInt32(padded(first)), "split": mi.Float(padded(split))}
+        nodes = np.stack([first, split.view(np.uint32)], axis=1).ravel()
+        arrays = {"nodes": mi.UInt32(padded(nodes, 4))}
         dr.eval(*arrays.values())
         return arrays
 
@@ -104,10 +105,11 @@ def stree_locate(arrays: dict, p, active=True):
     first = mi.UInt32(0)
     go = mi.Bool(active)
     while go:
-        first = dr.gather(mi.UInt32, arrays["first"], node, go)
+        word = dr.gather(mi.Vector2u, arrays["nodes"], node, go)
+        first = word.x
         leaf = first >= LEAF
         coord = dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
-        above = coord >= dr.gather(mi.Float, arrays["split"], node, go)
+        above = coord >= dr.reinterpret_array(mi.Float, word.y)
         node = dr.select(leaf, node, first + dr.select(above, mi.UInt32(1), mi.UInt32(0)))
         axis = dr.select(axis == 2, mi.UInt32(0), axis + 1)
         go &= ~leaf
