@@ -61,6 +61,17 @@ class SarsaState:
 
 
 @dataclass
+class GridVertex:
+    """What the path loop hands from :meth:`GridGuide.locate` to ``sample`` and ``record`` at a vertex: the lanes
+    the guide may guide (the BSDF flags), and the record index of the direction ``sample`` took (left None by an
+    untrained guide and by refined bins, whose record index ``record`` computes: the sampler's bin of a refined
+    entry's unrefined neighbour does not say the sub-bin)."""
+
+    guidable: mi.Bool
+    index: mi.UInt32 = None
+
+
+@dataclass
 class _Vertex:
     """Per-lane facts about a vertex that the samplers share (filled by ``GridGuide._vertex``)."""
 
@@ -212,44 +223,57 @@ class GridGuide(Guide):
 
     # ============================================================== device side
     # ---------------------------------------------------------------- sampling
+    def locate(self, si, bsdf, active) -> GridVertex:
+        return GridVertex(self.guides(bsdf, active))
+
     def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active, vertex=None):
         if not self.trained:
             if self.record_table.needs_pairs:
                 self._locate(si, bsdf, active)     # marks the pairs this pass visits: memoised for the next pass
             return bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
-        return self._sample_vertex(sampler, si, bsdf, bsdf_ctx, active)
+        guidable_lanes = self.guides(bsdf, active) if vertex is None else vertex.guidable
+        bs, weight, index = self._sample_vertex(sampler, si, bsdf, bsdf_ctx, active, guidable_lanes)
+        if vertex is not None and not self.record_table.refinement:
+            vertex.index = index
+        return bs, weight
 
     @dr.syntax
-    def _sample_vertex(self, sampler, si, bsdf, bsdf_ctx, active):
+    def _sample_vertex(self, sampler, si, bsdf, bsdf_ctx, active, guidable_lanes):
         """The guide where the BSDF is one it guides, one BSDF sample elsewhere: a branch, not a select, so that
         packets of lanes with nothing to guide (delta and, unless ``guided_bsdfs`` is smooth, glossy BSDFs; emitters;
-        escaped paths) pay only the BSDF flags test, not even the vertex's cell."""
-        guidable_lanes = self.guides(bsdf, active)
+        escaped paths) pay only the BSDF flags test, not even the vertex's cell. Returns the sample, its weight and
+        the record index of its direction (NO_RECORD where the BSDF is not guided: nothing is recorded there)."""
         if guidable_lanes:
-            bs, weight = self._sample_guidable(sampler, si, bsdf, bsdf_ctx, guidable_lanes)
+            bs, weight, index = self._sample_guidable(sampler, si, bsdf, bsdf_ctx, guidable_lanes)
         else:
             others = active & ~guidable_lanes
             bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(others), sampler.next_2d(others), others)
-        return bs, weight
+            index = mi.UInt32(NO_RECORD)
+        return bs, weight, index
 
     @dr.syntax
     def _sample_guidable(self, sampler, si, bsdf, bsdf_ctx, active):
         """The guide where the vertex's (cell, normal bin) pair has its memo, one BSDF sample elsewhere."""
         vertex = self._vertex(si, bsdf, active)
         if vertex.guided:
-            bs, weight = self._guided_sample(sampler, si, bsdf, bsdf_ctx, vertex)
+            bs, weight, index = self._guided_sample(sampler, si, bsdf, bsdf_ctx, vertex)
         else:
-            unguided = active & ~vertex.guided
-            bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(unguided), sampler.next_2d(unguided), unguided)
-        return bs, weight
+            bs, weight, index = self._unguided_sample(sampler, si, bsdf, bsdf_ctx, active & ~vertex.guided)
+        return bs, weight, index
 
-    def _guided_sample(self, sampler, si, bsdf, bsdf_ctx, vertex) -> tuple[mi.BSDFSample3f, mi.Spectrum]:
+    def _unguided_sample(self, sampler, si, bsdf, bsdf_ctx, active):
+        """One BSDF sample at a guidable vertex whose pair has no memo yet (its first visits), and its record index."""
+        bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
+        return bs, weight, self._index_taken(si, si.to_world(bs.wo))
+
+    def _guided_sample(self, sampler, si, bsdf, bsdf_ctx, vertex) -> tuple[mi.BSDFSample3f, mi.Spectrum, mi.UInt32]:
         """The one-sample mixture of BSDF sampling and the guide at the guided lanes: one BSDF call gives its sample,
-        and its value and density at the guide's direction."""
+        and its value and density at the guide's direction. Returns the sample, its weight and its record index."""
         guided = vertex.guided
+        table = self.record_table
         if self._stage == 0:      # profile stage "classify": the mask is computed (and used), the BSDF samples
             bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(guided), sampler.next_2d(guided), guided)
-            return bs, weight * 0.5
+            return bs, weight * 0.5, self._index_taken(si, si.to_world(bs.wo))
         if self.sampler.endswith("_inv"):
             use_guide = guided & (sampler.next_1d(guided) >= vertex.bsdf_share)
             guide_world, guide_bin = self._sample_inversion(sampler, vertex, use_guide)
@@ -261,25 +285,37 @@ class GridGuide(Guide):
             bsdf_ctx, si, guide_wo, sampler.next_1d(guided), sampler.next_2d(guided), guided)
         if self._stage == 1:      # profile stage "sample": guided directions, the BSDF's weights
             bs.wo = dr.select(use_guide, guide_wo, bs.wo)
-            return bs, bsdf_weight
+            return bs, bsdf_weight, self._index_taken(si, si.to_world(bs.wo))
         value = dr.select(use_guide, guide_value, bsdf_weight * bs.pdf)
         bsdf_pdf = dr.select(use_guide, guide_bsdf_pdf, bs.pdf)
         world = dr.select(use_guide, guide_world, si.to_world(bs.wo))
         chosen_bin = None
         if guide_bin is not None:
-            chosen_bin = dr.select(use_guide, guide_bin, self.record_table.fine_bin(world))
+            chosen_bin = dr.select(use_guide, guide_bin, table.fine_bin(world))
         pdf = self._mixture_pdf(vertex, world, bsdf_pdf, chosen_bin)
 
         weight = dr.select(pdf > 0, value / pdf, 0)
         self._count("guided", 1, guided)
         self._count("invalid", 1, guided & dr.all(weight == 0))
         if self._bsdf_paths:      # everything above is kept alive by an opaque zero, the path follows the BSDF
-            return bs, bsdf_weight + dr.opaque(mi.Float, 0) * (weight + mi.Float(guide_wo.x))
+            keep = dr.opaque(mi.Float, 0) * (weight + mi.Float(guide_wo.x))
+            return bs, bsdf_weight + keep, self._index_taken(si, si.to_world(bs.wo))
         bs.wo = dr.select(use_guide, guide_wo, bs.wo)
         bs.pdf = pdf
         bs.sampled_type = dr.select(use_guide, mi.UInt32(mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
         bs.eta = dr.select(use_guide, 1.0, bs.eta)
-        return bs, weight
+        return bs, weight, self._index_taken(si, world, vertex.cell, chosen_bin)
+
+    def _index_taken(self, si, world: mi.Vector3f, cell: mi.UInt32 = None, chosen_bin: mi.UInt32 = None) -> mi.UInt32:
+        """The record index of direction ``world`` taken at ``si``, for ``record`` (from the vertex's cell and the bin
+        the direction was drawn or looked up in, where the sampler has them); NO_RECORD with refined bins, whose
+        index ``record`` looks up (see :class:`GridVertex`)."""
+        table = self.record_table
+        if table.refinement:
+            return mi.UInt32(NO_RECORD)
+        if chosen_bin is not None:
+            return cell * table.bins.count + chosen_bin
+        return table.index(si.p, world)
 
     def guides(self, bsdf, active) -> mi.Bool:
         return active & guidable(bsdf, self.smooth)
@@ -440,21 +476,26 @@ class GridGuide(Guide):
 
     def record(self, state, si, emitted, bs, weight, continues, active, vertex=None):
         # Only segments that leave a guidable surface are recorded: Q is read nowhere else.
-        leaves = continues & guidable(si.bsdf(), self.smooth)
+        leaves = continues & (guidable(si.bsdf(), self.smooth) if vertex is None else vertex.guidable)
+        index = vertex.index if vertex is not None else None
         if self.rule == "mc":
-            here = dr.select(leaves, self.record_table.index(si.p, si.to_world(bs.wo)), NO_RECORD)
+            here = dr.select(leaves, self._record_index(si, bs, index), NO_RECORD)
             return self._mc_log.append(state, emitted, weight, continues, here, active)
-        state.previous = self._record_td(state.previous, si, emitted, bs, weight, continues, leaves, active)
+        state.previous = self._record_td(state.previous, si, emitted, bs, weight, continues, leaves, active, index)
         return state
 
+    def _record_index(self, si, bs, index) -> mi.UInt32:
+        """The record index of the direction sampled at ``si``: the sampler's (``index``), or looked up."""
+        return self.record_table.index(si.p, si.to_world(bs.wo)) if index is None else index
+
     @dr.syntax
-    def _record_td(self, previous, si, emitted, bs, weight, continues, leaves, active) -> mi.UInt32:
+    def _record_td(self, previous, si, emitted, bs, weight, continues, leaves, active, index=None) -> mi.UInt32:
         """SARSA / Expected SARSA: the target of the segment that led here (``previous``), and the entry of the
         segment that leaves (returned). A branch: packets with neither (unguided surfaces) skip it."""
         table = self.record_table
         pending = active & (previous != NO_RECORD)
         if pending | leaves:
-            here = table.index(si.p, si.to_world(bs.wo))
+            here = self._record_index(si, bs, index)
             target = rgb_mean(emitted)
             onward = rgb_mean(weight) * dr.gather(mi.Float, table.q, table.entry(here), pending & continues)  # ∫ f·Q·cos
             known = mi.Bool(False)
