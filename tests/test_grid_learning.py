@@ -5,8 +5,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from guiding.guides.grid import GridGuide
+from guiding.guides.grid import GridGuide, GridVertex
 from guiding.guides.grid_record import PAIR_FIELDS
+from guiding.guides.vertex_log import NO_RECORD
 
 ALBEDO = 0.6
 
@@ -80,6 +81,29 @@ def test_sarsa_bootstraps_from_q_at_the_next_vertex(floor):
     assert set(recorded) == {first, second}
     assert recorded[first] == pytest.approx((0.1 + np.mean([0.8, 0.4, 0.6]) * q_next, 1))
     assert recorded[second] == pytest.approx((2.0, 1))                            # the path ends: Le only
+
+
+def test_sarsa_bootstraps_where_the_sampler_gave_no_index(floor):
+    """The path loop hands ``record`` the record index the sampler took (a GridVertex); at a vertex whose BSDF the
+    guide does not guide (glossy, say) the sampler gives none, and the segment that arrived there still bootstraps
+    from Q at the direction taken there."""
+    guide = GridGuide(spatial_resolution=4, directional_resolution=4, rule="sarsa", sampler="hemi_rej_plus")
+    record = guide.record_table
+    record.set_bounds(floor.bbox())
+    v1, v2 = _vertex(floor, -1.5, -1.5), _vertex(floor, 0.5, 0.5)
+    d1, d2 = _direction(0.3, 0.2, 0.9), _direction(-0.5, 0.1, 0.8)
+    first, second = record.index(v1.p, v1.to_world(d1.wo)), record.index(v2.p, v2.to_world(d2.wo))
+    q_next = 2.5
+    dr.scatter(record.q, q_next, second)
+    state = guide.new_paths(1, 16)
+    state = guide.record(state, v1, mi.Color3f(0), d1, mi.Color3f(0.5), mi.Bool(True), mi.Bool(True),
+                         GridVertex(mi.Bool(True), first))
+    state = guide.record(state, v2, mi.Color3f(0.1), d2, mi.Color3f(0.8, 0.4, 0.6), mi.Bool(True), mi.Bool(True),
+                         GridVertex(mi.Bool(False), mi.UInt32(NO_RECORD)))
+    guide.finish_paths(state)
+    recorded = _recorded(guide)
+    assert set(recorded) == {int(first[0])}
+    assert recorded[int(first[0])] == pytest.approx((0.1 + np.mean([0.8, 0.4, 0.6]) * q_next, 1))
 
 
 def test_expected_sarsa_reads_the_memoised_integral(floor):

@@ -220,7 +220,7 @@ class Forest:
 def padded(a: np.ndarray, minimum: int = 2) -> np.ndarray:
     """``a`` with zeros appended up to ``minimum`` entries, in 64-byte aligned memory, for uploading as a device
     table (D-trees, S-tree). Arrays of one element may be traced differently from larger ones, so every table keeps
-    >= 2 entries; and the CPU backend uses a NumPy array's memory in place, where a table that is not 64-byte aligned
+    >= 2 entries (those read as packets of four, >= 4); and the CPU backend uses a NumPy array's memory in place, where a table that is not 64-byte aligned
     gets scalar instead of packet gathers: a different kernel, compiled again."""
     a = a if len(a) >= minimum else np.concatenate([a, np.zeros(minimum - len(a), dtype=a.dtype)])
     buffer = np.empty(a.nbytes + 64, dtype=np.uint8)

@@ -242,7 +242,8 @@ class GridGuide(Guide):
         """The guide where the BSDF is one it guides, one BSDF sample elsewhere: a branch, not a select, so that
         packets of lanes with nothing to guide (delta and, unless ``guided_bsdfs`` is smooth, glossy BSDFs; emitters;
         escaped paths) pay only the BSDF flags test, not even the vertex's cell. Returns the sample, its weight and
-        the record index of its direction (NO_RECORD where the BSDF is not guided: nothing is recorded there)."""
+        the record index of its direction (NO_RECORD where the BSDF is not guided: ``record`` looks it up there if a
+        recorded segment arrived)."""
         if guidable_lanes:
             bs, weight, index = self._sample_guidable(sampler, si, bsdf, bsdf_ctx, guidable_lanes)
         else:
@@ -479,14 +480,23 @@ class GridGuide(Guide):
         leaves = continues & (guidable(si.bsdf(), self.smooth) if vertex is None else vertex.guidable)
         index = vertex.index if vertex is not None else None
         if self.rule == "mc":
-            here = dr.select(leaves, self._record_index(si, bs, index), NO_RECORD)
+            here = dr.select(leaves, self._record_index(si, bs, index, leaves), NO_RECORD)
             return self._mc_log.append(state, emitted, weight, continues, here, active)
         state.previous = self._record_td(state.previous, si, emitted, bs, weight, continues, leaves, active, index)
         return state
 
-    def _record_index(self, si, bs, index) -> mi.UInt32:
-        """The record index of the direction sampled at ``si``: the sampler's (``index``), or looked up."""
-        return self.record_table.index(si.p, si.to_world(bs.wo)) if index is None else index
+    @dr.syntax
+    def _record_index(self, si, bs, index, needed) -> mi.UInt32:
+        """The record index of the direction sampled at ``si``, in the lanes ``needed``: the sampler's (``index``),
+        looked up where it gave none (None; NO_RECORD at a vertex whose BSDF it does not guide, where a segment that
+        arrives still reads Q). A branch: packets whose every index the sampler gave skip the lookup."""
+        if dr.hint(index is None, mode="scalar"):
+            index = self.record_table.index(si.p, si.to_world(bs.wo))
+        else:
+            missing = needed & (index == NO_RECORD)
+            if missing:
+                index = dr.select(missing, self.record_table.index(si.p, si.to_world(bs.wo)), index)
+        return index
 
     @dr.syntax
     def _record_td(self, previous, si, emitted, bs, weight, continues, leaves, active, index=None) -> mi.UInt32:
@@ -495,7 +505,7 @@ class GridGuide(Guide):
         table = self.record_table
         pending = active & (previous != NO_RECORD)
         if pending | leaves:
-            here = self._record_index(si, bs, index)
+            here = self._record_index(si, bs, index, pending | leaves)
             target = rgb_mean(emitted)
             onward = rgb_mean(weight) * dr.gather(mi.Float, table.q, table.entry(here), pending & continues)  # ∫ f·Q·cos
             known = mi.Bool(False)

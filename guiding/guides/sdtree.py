@@ -111,9 +111,9 @@ class _TreeGuide(Guide):
         return dr.select(guided, self.bsdf_fraction * p_bsdf + (1 - self.bsdf_fraction) * p_tree, p_bsdf)
 
     def locate(self, si, bsdf, active):
-        """The vertex's D-tree (its S-tree leaf, or grid cell), in the lanes whose BSDF has a smooth lobe: the only
-        ones sampled from a D-tree or recorded (found once: the S-tree's descent took a tenth of a path's time)."""
-        return self._locate(si.p, active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth))
+        """The vertex's D-tree (its S-tree leaf, or grid cell), in the lanes sampled from a D-tree or recorded (a
+        BSDF it guides, or one with a smooth lobe); found once: the S-tree's descent took a tenth of a path's time."""
+        return self._locate(si.p, self.guides(bsdf, active) | (active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)))
 
     @dr.syntax
     def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active, vertex=None):
