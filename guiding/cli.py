@@ -8,7 +8,6 @@ Bad input ends with one line on stderr and a non-zero exit, before any output is
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import os
@@ -16,27 +15,16 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from .bench_command import command_bench
 from .errors import GuidingError
+from .output_dirs import output_dir, prepare_output_dir
 from .provenance import device_name, render_provenance
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 
-#: What ``bench`` times by default: the shared scenes (method.md) and every kind of method.
-BENCH_SCENES = ("cornell-box", "veach-ajar", "staircase2", "living-room")
-#: Benchmarked beside them, at 256x256 (scale 1): the project's scenes where guided methods have nothing to guide and
-#: should cost what brdf does (mirror-box: every method; glossy-box: the methods guiding purely diffuse surfaces).
-BENCH_EXTRA_SCENES = ("glossy-box:1", "mirror-box:1")
 #: The paper's hemi_inv without the BSDF share, shown beside ours in the single-bounce weight table.
 PURE_HEMI_INV = ("mc-hemi_inv-pure", "sarsa-hemi_inv-pure", "expected_sarsa-hemi_inv-pure")
-#: What ``bench --part pass-schedule`` times by default: the methods whose passes differ (``ours`` keeps the paper's
-#: update after every pass), on the scenes and scales of ``config/paper.yaml``'s equal-time experiment.
-PASS_SCHEDULE_METHODS = ("brdf", "ours", "ours-plus", "sdtree")
-PASS_SCHEDULE_SCENES = ("cornell-box:0.125", "veach-ajar:0.0625", "staircase2:0.0625", "living-room:0.0625",
-                        "glossy-room:0.125", "sun-blinds:0.125")
-BENCH_METHODS = ("ours", "ours-uniform-proposals", "ours-no-rejopt", "ours-expected", "sarsa-sphere_inv",
-                 "sarsa-hemi_inv", "sdtree", "quadtree-grid")
-
 
 class _Parser(argparse.ArgumentParser):
     """argparse, but a usage error is one line (not the usage text) and exit code 2."""
@@ -196,35 +184,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _prepare_output_dir(path: str) -> Path:
-    out = Path(path)
-    if out.exists() and not out.is_dir():
-        raise GuidingError(f"output folder '{out}' exists and is not a folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise GuidingError(f"cannot create output folder '{out}': {error.strerror}") from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise GuidingError(f"output folder '{out}' is not writable")
-    return out
-
-
-@contextlib.contextmanager
-def _output_dir(path: str):
-    """:func:`_prepare_output_dir`, and the folders it made removed again if the block fails: bad input found
-    later (a broken scene file) or Ctrl-C leaves no empty output folder behind."""
-    out = Path(path)
-    made = [folder for folder in (out, *out.parents) if not folder.exists()]   # deepest first
-    folder = _prepare_output_dir(path)
-    try:
-        yield folder
-    except BaseException:
-        for made_folder in made:
-            with contextlib.suppress(OSError):   # not empty: something else wrote there, keep it
-                made_folder.rmdir()
-        raise
-
-
 def _image_metadata(scene_name: str, args, method: str, integrator, budget, provenance: dict, combine: str) -> dict:
     """What every EXR file of a render carries in its header (imageio.write_exr; the spp are added per file): the
     method and its guide's parameters, the render's parameters (``combine``: its final-image mode), seed, scene,
@@ -295,7 +254,7 @@ def _command_render(args) -> None:
     props = mi.Properties()
     props["max_depth"] = args.max_depth
     integrator = GuidedPathIntegrator(props, guide=guide)
-    with _output_dir(args.out) as out:
+    with output_dir(args.out) as out:
         stats = _render_to(out, args.scene, args, integrator, args.method, budget, variant)
     print(f"{args.method} on {args.scene}: {stats['spp']} spp in {stats['seconds']:.2f} s "
           f"(compile {stats['compile_seconds']:.2f} s), hit rate {stats['hit_rate']:.4f} -> {out}")
@@ -312,7 +271,7 @@ def _command_reference(args) -> None:
     import mitsuba as mi
 
     integrator = mi.load_dict({"type": "path", "max_depth": args.max_depth})
-    with _output_dir(args.out) as out:
+    with output_dir(args.out) as out:
         stats = _render_to(out, args.scene, args, integrator, "reference-path", budget, variant)
     print(f"reference of {args.scene}: {stats['spp']} spp in {stats['seconds']:.1f} s -> {out}")
 
@@ -355,75 +314,6 @@ def _command_show_guide(args) -> None:
     print(f"{title} -> {out}")
 
 
-def _parse_scene_list(text: str) -> list[tuple[str, float]]:
-    pairs = []
-    for item in filter(None, text.split(",")):
-        name, _, scale = item.partition(":")
-        try:
-            pairs.append((name, float(scale) if scale else 1.0))
-        except ValueError:
-            raise GuidingError(f"bad scene entry '{item}': expected NAME or NAME:SCALE") from None
-    return pairs
-
-
-def _command_bench(args) -> None:
-    from .backend import set_variant
-    from .scenes import find_scene
-
-    schedule, size = args.part == "pass-schedule", args.part == "kernel-size"
-    args.scenes = args.scenes or ",".join(PASS_SCHEDULE_SCENES if schedule else [f"{s}:0.0625" for s in BENCH_SCENES]
-                                          if size else [*(f"{s}:0.25" for s in BENCH_SCENES), *BENCH_EXTRA_SCENES])
-    args.methods = args.methods or ",".join(PASS_SCHEDULE_METHODS if schedule else BENCH_METHODS)
-    args.out = args.out or ("results/pass_schedule" if schedule else "results/bench")
-    scenes = _parse_scene_list(args.scenes)
-    for name, _ in scenes:
-        find_scene(name)
-    from .methods import check_method
-
-    for method in filter(None, args.methods.split(",")):
-        check_method(method)
-    variant = set_variant(args.variant, args.threads)
-    out = _prepare_output_dir(args.out)
-    from .bench import benchmark, pass_schedule_table, target_table, write_table
-
-    device = device_name(variant)
-    tag = "gpu" if variant.startswith("cuda") else "cpu"
-    if size:
-        from .kernel_size import kernel_table
-
-        frame = kernel_table(scenes, [m for m in args.methods.split(",") if m])
-        write_table(frame, out / "kernel_instructions", "Machine instructions of each method's render kernel (the "
-                    "largest module compiled in its first passes; see guiding/kernel_size.py)", device,
-                    f"python -m guiding bench --part kernel-size --scenes {args.scenes} --methods {args.methods}")
-        print(frame.to_string(index=False))
-        return
-    if schedule:
-        frame = pass_schedule_table(scenes, [m for m in args.methods.split(",") if m])
-        write_table(frame, out / f"pass_schedule_{tag}", "Fixed against growing passes: counted seconds of 512-spp "
-                    "renders (render + update, compilation excluded; medians of 2 alternating rounds)", device,
-                    f"python -m guiding bench --part pass-schedule --scenes {args.scenes} --methods {args.methods}")
-        print(frame.to_string(index=False))
-        return
-    frame, breakdown = benchmark(scenes, [m for m in args.methods.split(",") if m], passes=args.passes,
-                                 breakdown=not args.no_breakdown)
-    command = (f"python -m guiding bench --scenes {args.scenes} --methods {args.methods} --passes {args.passes}"
-               + (f" --variant {args.variant}" if args.variant != "auto" else "")
-               + (f" --threads {args.threads}" if args.threads else "")
-               + (" --no-breakdown" if args.no_breakdown else ""))
-    write_table(frame, out / f"benchmark_{tag}", "Cost per spp of every method vs `brdf` and Mitsuba `path` (same "
-                f"run, {args.passes} interleaved passes of 8 spp after 2 warm-up passes, max depth 16; `trace-only`: "
-                "the throughput limit, `share_of_trace_limit`: rays/s as a fraction of its)", device,
-                command, sections={"Targets": target_table(frame, tag)})
-    if not breakdown.empty:
-        write_table(breakdown, out / "cost_breakdown", "Cost breakdown of every guided method: kernel time per spp "
-                    "with the parts of the bounce switched on one by one (same interleaved run as "
-                    f"benchmark_{tag}; `increment`: the stage's cost over the previous stage, the first over `brdf`; "
-                    "partial stages are a benchmark instrument whose images are not meant to be correct)", device,
-                    command)
-        print(breakdown.to_string(index=False))
-    print(frame.to_string(index=False))
-
-
 def _command_demo(args) -> None:
     """Reference (cached) + each method at equal spp on one scene, and a Markdown table of the errors."""
     from .backend import set_variant
@@ -435,7 +325,7 @@ def _command_demo(args) -> None:
         check_method(method)
     find_scene(args.scene)
     variant = set_variant(args.variant, args.threads)
-    out = _prepare_output_dir(args.out)
+    out = prepare_output_dir(args.out)
     import pandas as pd
 
     from .imageio import read_exr
@@ -464,7 +354,7 @@ def _command_validate(args) -> None:
     from .backend import set_variant
 
     variant = set_variant(args.variant, args.threads)
-    out = _prepare_output_dir(args.out)
+    out = prepare_output_dir(args.out)
     from .bench import write_table
     import pandas as pd
 
@@ -533,7 +423,7 @@ def _command_sdtree_baseline(args) -> None:
     if not seeds or not all(scale > 0 for scale in scales):
         raise GuidingError("sdtree-baseline: give at least one seed, and scales > 0")
     variant = set_variant(args.variant, args.threads)
-    out = _prepare_output_dir(args.out)
+    out = prepare_output_dir(args.out)
     from .bench import write_table
     from .sdtree_baseline import equal_spp_table, threshold_table
 
@@ -577,7 +467,7 @@ def _command_methods(args) -> None:
 
 
 COMMANDS = {"render": _command_render, "reference": _command_reference, "evaluate": _command_evaluate,
-            "bench": _command_bench, "validate": _command_validate, "demo": _command_demo,
+            "bench": command_bench, "validate": _command_validate, "demo": _command_demo,
             "sdtree-baseline": _command_sdtree_baseline,
             "show-guide": _command_show_guide, "scenes": _command_scenes, "methods": _command_methods}
 

@@ -220,7 +220,7 @@ class Forest:
 def padded(a: np.ndarray, minimum: int = 2) -> np.ndarray:
     """``a`` with zeros appended up to ``minimum`` entries, in 64-byte aligned memory, for uploading as a device
     table (D-trees, S-tree). Arrays of one element may be traced differently from larger ones, so every table keeps
-    >= 2 entries (those read as packets of four, >= 4); and the CPU backend uses a NumPy array's memory in place, where a table that is not 64-byte aligned
+    >= 2 entries; and the CPU backend uses a NumPy array's memory in place, where a table that is not 64-byte aligned
     gets scalar instead of packet gathers: a different kernel, compiled again."""
     a = a if len(a) >= minimum else np.concatenate([a, np.zeros(minimum - len(a), dtype=a.dtype)])
     buffer = np.empty(a.nbytes + 64, dtype=np.uint8)
@@ -263,8 +263,8 @@ class DeviceForest:
         self.n_nodes = forest.n_nodes
         self.n_trees = forest.n_trees
         child = np.where(forest.child < 0, 0, forest.child).astype(np.uint32).ravel()
-        self.child = mi.UInt32(padded(child, 4))
-        self.prob = mi.Float(padded(forest.probabilities().astype(np.float32).ravel(), 4))
+        self.child = mi.UInt32(padded(child))
+        self.prob = mi.Float(padded(forest.probabilities().astype(np.float32).ravel()))
         self.tree_of_node = mi.UInt32(padded(forest.tree.astype(np.uint32)))
         self.has_energy = mi.Bool(padded(forest.totals() > 0))
         dr.eval(self.child, self.prob, self.tree_of_node, self.has_energy)

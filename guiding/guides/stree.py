@@ -92,7 +92,7 @@ class STree:
         first = np.array([LEAF | t if c < 0 else c for c, t in zip(self.child, self.tree)], dtype=np.uint32)
         split = np.array([self.split_value(n) for n in range(self.n_nodes)], dtype=np.float32)
         nodes = np.stack([first, split.view(np.uint32)], axis=1).ravel()
-        arrays = {"nodes": mi.UInt32(padded(nodes, 4))}
+        arrays = {"nodes": mi.UInt32(padded(nodes))}
         dr.eval(*arrays.values())
         return arrays
 

@@ -1,0 +1,90 @@
+"""The ``bench`` command: its default scenes and methods, and the tables it writes (cost per spp with its breakdown,
+fixed against growing passes, kernel sizes)."""
+
+from __future__ import annotations
+
+from .errors import GuidingError
+from .output_dirs import prepare_output_dir
+from .provenance import device_name
+
+#: What ``bench`` times by default: the shared scenes (method.md) and every kind of method.
+BENCH_SCENES = ("cornell-box", "veach-ajar", "staircase2", "living-room")
+#: Benchmarked beside them, at 256x256 (scale 1): the project's scenes where guided methods have nothing to guide and
+#: should cost what brdf does (mirror-box: every method; glossy-box: the methods guiding purely diffuse surfaces).
+BENCH_EXTRA_SCENES = ("glossy-box:1", "mirror-box:1")
+#: What ``bench --part pass-schedule`` times by default: the methods whose passes differ (``ours`` keeps the paper's
+#: update after every pass), on the scenes and scales of ``config/paper.yaml``'s equal-time experiment.
+PASS_SCHEDULE_METHODS = ("brdf", "ours", "ours-plus", "sdtree")
+PASS_SCHEDULE_SCENES = ("cornell-box:0.125", "veach-ajar:0.0625", "staircase2:0.0625", "living-room:0.0625",
+                        "glossy-room:0.125", "sun-blinds:0.125")
+BENCH_METHODS = ("ours", "ours-uniform-proposals", "ours-no-rejopt", "ours-expected", "sarsa-sphere_inv",
+                 "sarsa-hemi_inv", "sdtree", "quadtree-grid")
+
+
+def parse_scene_list(text: str) -> list[tuple[str, float]]:
+    pairs = []
+    for item in filter(None, text.split(",")):
+        name, _, scale = item.partition(":")
+        try:
+            pairs.append((name, float(scale) if scale else 1.0))
+        except ValueError:
+            raise GuidingError(f"bad scene entry '{item}': expected NAME or NAME:SCALE") from None
+    return pairs
+
+
+def command_bench(args) -> None:
+    from .backend import set_variant
+    from .scenes import find_scene
+
+    schedule, size = args.part == "pass-schedule", args.part == "kernel-size"
+    args.scenes = args.scenes or ",".join(PASS_SCHEDULE_SCENES if schedule else [f"{s}:0.0625" for s in BENCH_SCENES]
+                                          if size else [*(f"{s}:0.25" for s in BENCH_SCENES), *BENCH_EXTRA_SCENES])
+    args.methods = args.methods or ",".join(PASS_SCHEDULE_METHODS if schedule else BENCH_METHODS)
+    args.out = args.out or ("results/pass_schedule" if schedule else "results/bench")
+    scenes = parse_scene_list(args.scenes)
+    for name, _ in scenes:
+        find_scene(name)
+    from .methods import check_method
+
+    for method in filter(None, args.methods.split(",")):
+        check_method(method)
+    variant = set_variant(args.variant, args.threads)
+    out = prepare_output_dir(args.out)
+    from .bench import benchmark, pass_schedule_table, target_table, write_table
+
+    device = device_name(variant)
+    tag = "gpu" if variant.startswith("cuda") else "cpu"
+    if size:
+        from .kernel_size import kernel_table
+
+        frame = kernel_table(scenes, [m for m in args.methods.split(",") if m])
+        write_table(frame, out / "kernel_instructions", "Machine instructions of each method's render kernel (the "
+                    "largest module compiled in its first passes; see guiding/kernel_size.py)", device,
+                    f"python -m guiding bench --part kernel-size --scenes {args.scenes} --methods {args.methods}")
+        print(frame.to_string(index=False))
+        return
+    if schedule:
+        frame = pass_schedule_table(scenes, [m for m in args.methods.split(",") if m])
+        write_table(frame, out / f"pass_schedule_{tag}", "Fixed against growing passes: counted seconds of 512-spp "
+                    "renders (render + update, compilation excluded; medians of 2 alternating rounds)", device,
+                    f"python -m guiding bench --part pass-schedule --scenes {args.scenes} --methods {args.methods}")
+        print(frame.to_string(index=False))
+        return
+    frame, breakdown = benchmark(scenes, [m for m in args.methods.split(",") if m], passes=args.passes,
+                                 breakdown=not args.no_breakdown)
+    command = (f"python -m guiding bench --scenes {args.scenes} --methods {args.methods} --passes {args.passes}"
+               + (f" --variant {args.variant}" if args.variant != "auto" else "")
+               + (f" --threads {args.threads}" if args.threads else "")
+               + (" --no-breakdown" if args.no_breakdown else ""))
+    write_table(frame, out / f"benchmark_{tag}", "Cost per spp of every method vs `brdf` and Mitsuba `path` (same "
+                f"run, {args.passes} interleaved passes of 8 spp after 2 warm-up passes, max depth 16; `trace-only`: "
+                "the throughput limit, `share_of_trace_limit`: rays/s as a fraction of its)", device,
+                command, sections={"Targets": target_table(frame, tag)})
+    if not breakdown.empty:
+        write_table(breakdown, out / "cost_breakdown", "Cost breakdown of every guided method: kernel time per spp "
+                    "with the parts of the bounce switched on one by one (same interleaved run as "
+                    f"benchmark_{tag}; `increment`: the stage's cost over the previous stage, the first over `brdf`; "
+                    "partial stages are a benchmark instrument whose images are not meant to be correct)", device,
+                    command)
+        print(breakdown.to_string(index=False))
+    print(frame.to_string(index=False))
