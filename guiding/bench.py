@@ -228,7 +228,7 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
                 "guided_per_ray": sum(r.guided for r in counted) / max(sum(r.rays for r in counted), 1)
                 if counted[-1].guided is not None else None,
                 "memo_pairs": records[-1].memo_pairs,
-                "nothing_to_guide": method not in ("path", TRACE_ONLY, "brdf") and nothing_to_guide(scene, guide),
+                "nothing_to_guide": method not in ("path", TRACE_ONLY, "brdf") and not guide.guides_any(scene),
             })
     return pd.DataFrame(rows), pd.DataFrame(breakdown_rows)
 
@@ -288,12 +288,6 @@ TARGETS = [
 #: Where a guided method has nothing to guide (no BSDF of the scene is one it guides: mirror-box for every method,
 #: glossy-box for those guiding purely diffuse surfaces), it should cost at most this factor of ``brdf``.
 NO_GUIDABLE_BOUND = 1.05
-
-
-def nothing_to_guide(scene: mi.Scene, guide) -> bool:
-    """Whether ``guide`` guides none of ``scene``'s BSDFs (:meth:`~guiding.guides.base.Guide.guides`)."""
-    bsdfs = scene.shapes_dr().bsdf()
-    return not bool(dr.any(guide.guides(bsdfs, dr.full(mi.Bool, True, dr.width(bsdfs))))[0])
 
 
 def target_table(frame: pd.DataFrame, device_kind: str) -> pd.DataFrame:

@@ -91,9 +91,10 @@ class PassDriver:
         self.spp_done = 0
 
     def prepare(self, spp_budget: int | None = None) -> None:
-        """Before the first pass: the guide allocates its tables and learns the spp budget (None: a time budget)."""
+        """Before the first pass: the integrator and its guide prepare for the scene (``prepare``), and the guide
+        learns the spp budget (None: a time budget)."""
         if self.guide is not None:
-            self.guide.prepare(self.scene)
+            self.integrator.prepare(self.scene)
             self.guide.set_budget(spp_budget)
         self.spp_done = 0
 

@@ -61,6 +61,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
             statistics = props.get("statistics", False)
             guide = make_guide(props.get("method", "brdf"), **({"statistics": True} if statistics else {}))
         self.guide = guide
+        self._path_guide = guide      # what the path loop asks (see prepare)
         self.last_result = None
         self.reset_counters()
 
@@ -87,6 +88,13 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         """One pass of ``spp`` samples per pixel with the guide as it is (Mitsuba's own ``render``)."""
         return mi.render(scene, integrator=_PassRenderer(self), sensor=sensor, seed=seed, spp=spp)
 
+    def prepare(self, scene: mi.Scene) -> None:
+        """Before the first pass on ``scene``: the guide allocates its tables; and where no BSDF of the scene is one
+        the guide guides, the passes trace plain BSDF sampling, without the guide's code (masked off at every
+        vertex, it would still cost every bounce)."""
+        self.guide.prepare(scene)
+        self._path_guide = self.guide if self.guide.guides_any(scene) else _BSDF_SAMPLING
+
     def reset_counters(self) -> None:
         self.path_count = mi.UInt32(0)
         self.hit_count = mi.UInt32(0)
@@ -95,7 +103,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     @dr.syntax
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f, medium: mi.Medium = None,
                active: mi.Bool = True) -> tuple[mi.Spectrum, mi.Bool, list]:
-        guide = self.guide
+        guide = self._path_guide
         records = guide.records()
         bsdf_ctx = mi.BSDFContext()
 
@@ -173,6 +181,9 @@ class _PassRenderer(mi.SamplingIntegrator):
     def sample(self, scene, sampler, ray, medium=None, active=True):
         return self.integrator.sample(scene, sampler, ray, medium, active)
 
+
+#: The path loop's guide in a scene with nothing to guide.
+_BSDF_SAMPLING = Guide()
 
 _registered = set()
 

@@ -206,3 +206,46 @@ def test_progress_lines_off_a_terminal_and_a_bar_with_eta_on_request(cornell, ca
     assert "\r" in bar and "16/16 spp" in bar and "100%|" in bar and "<00:00" in bar   # [elapsed<remaining]
     render(cornell, integrator, Budget(spp=16, pass_spp=8), progress=False)
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("method", ["ours", "sdtree"])
+def test_a_scene_with_nothing_to_guide_renders_the_bsdf_path_loop(method, monkeypatch):
+    """In mirror-box (delta BSDFs only) a guided method traces BSDF sampling without the guide's code (its
+    ``sample`` and ``record`` are never traced): its passes are `brdf`'s, sample for sample (same seeds), while its
+    guide still updates between them. In cornell-box the guide is traced."""
+    from guiding.driver import PassDriver
+    from guiding.methods import make_guide
+    from guiding.scenes import load_scene
+
+    traced = []
+    guide = make_guide(method)
+    for name in ("sample", "record"):
+        original = getattr(guide, name)
+        monkeypatch.setattr(guide, name, lambda *args, _original=original, _name=name, **kwargs:
+                            traced.append(_name) or _original(*args, **kwargs))
+    scene = load_scene("mirror-box", 1 / 16)
+    drivers = [PassDriver(scene, GuidedPathIntegrator(guide=g)) for g in (make_guide("brdf"), guide)]
+    for driver in drivers:
+        driver.prepare()
+    for seed in range(3):
+        plain, guided = (np.array(driver.run(seed, 4).image) for driver in drivers)
+        assert np.array_equal(plain, guided) and np.any(plain > 0)
+    assert traced == [] and drivers[1].spp_done == 12
+    cornell = PassDriver(load_scene("cornell", 1 / 16), GuidedPathIntegrator(guide=guide))
+    cornell.prepare()
+    cornell.run(0, 1)
+    assert "sample" in traced
+
+
+def test_a_scene_with_instances_counts_as_guided():
+    """The BSDFs of instanced shapes are not listed by the scene: such a scene is assumed to have something to
+    guide."""
+    import mitsuba as mi
+
+    from guiding.methods import make_guide
+
+    scene = mi.load_dict({"type": "scene", "group": {"type": "shapegroup", "ball": {"type": "sphere",
+                                                                                  "bsdf": {"type": "conductor"}}},
+                          "copy": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"}}})
+    assert make_guide("ours").guides_any(scene)
+

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import drjit as dr
 import mitsuba as mi
 
 from .parameters import COMBINE_LAST
@@ -129,6 +130,14 @@ class Guide:
         """The lanes whose BSDF this guide may guide, from its flags alone (elsewhere it samples the BSDF and pays
         nothing else); BSDF sampling guides none."""
         return active & False
+
+    def guides_any(self, scene: mi.Scene) -> bool:
+        """Whether some BSDF of ``scene`` is one this guide guides (:meth:`guides`; host side). A scene with
+        instances counts as guided: the BSDFs of instanced shapes are not listed."""
+        if any(shape.class_name() == "Instance" for shape in scene.shapes()):
+            return True
+        bsdfs = scene.shapes_dr().bsdf()
+        return bool(dr.any(self.guides(bsdfs, dr.full(mi.Bool, True, dr.width(bsdfs))))[0])
 
     def pdf(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, wo: mi.Vector3f,
             active: mi.Bool) -> mi.Float:
