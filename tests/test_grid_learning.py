@@ -5,6 +5,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from guiding.guides.alias_rows import SLOT_FIELDS
 from guiding.guides.grid import GridGuide, GridVertex
 from guiding.guides.grid_record import PAIR_FIELDS
 from guiding.guides.vertex_log import NO_RECORD
@@ -147,7 +148,8 @@ def test_running_mean_and_exploration():
     shifted = np.array([2.0, 0.0]) + 1e-6
     expected = 0.9 * shifted / shifted.sum() + 0.1 / 2
     assert record.policy.numpy() == pytest.approx(expected, rel=1e-6)
-    assert record.cdf.numpy() == pytest.approx(np.cumsum(expected), rel=1e-6)
+    density = np.array(record.cell_alias).reshape(-1, SLOT_FIELDS)[:, 2]     # each bin's, as sphere_inv draws it
+    assert density * record.bins.solid_angle == pytest.approx(expected, rel=1e-6)
 
 
 @pytest.mark.parametrize("method", ["sarsa-sphere_inv", "sarsa-hemi_inv", "ours", "ours-no-rejopt", "ours-expected"])
@@ -217,7 +219,7 @@ def test_ours_plus_rebuilds_less_often_than_the_paper():
 
 
 def test_pair_memo_reads_back_every_visited_pairs_row():
-    """The memo packs each visited pair's CDF row with N, M and the miss share (one packet gather): every pair
+    """The memo packs each visited pair's alias row number with N, M and the miss share (one packet gather): every pair
     reads back its own row, in the order the rows were built, and N > 0."""
     record = GridGuide(spatial_resolution=3, directional_resolution=3, rule="sarsa",
                        sampler="hemi_rej_plus").record_table

@@ -7,8 +7,8 @@ Rules (method.md §3), the target recorded for the segment x → x′ that left 
 A segment whose guided direction went below the surface is never traced, so it records nothing.
 
 Samplers (method.md §5), used only at surfaces whose BSDF is purely diffuse; others are BSDF-sampled:
-  ``sphere_inv``     bin from the cell's CDF over the sphere, uniform in the bin;
-  ``hemi_inv``       bin from the memoised CDF of P·∫cos per (cell, normal bin), uniform in the bin;
+  ``sphere_inv``     bin from the cell's distribution over the sphere, uniform in the bin;
+  ``hemi_inv``       bin from the memoised distribution of P·∫cos per (cell, normal bin), uniform in the bin;
   ``hemi_rej``       the target ``P(ω)·cos⁺(ω, n_c)/N`` by rejection;
   ``hemi_rej_plus``  the same with the share ε_r = max((1−2c)/(2−2c), 0), c = ū/M, drawn apart (the paper's Rej+).
 Every sampler is a one-sample mixture with BSDF sampling, ``p = α·p_bsdf + (1 − α)·p_guide``, and reports that
@@ -23,7 +23,7 @@ The rejection target uses the normal bin's centre ``n_c``: the memoised ``N = �
 at every true normal, so the samplers are exact by construction (with N taken at n_c but the cosine at the true
 normal, each bounce was off by N(n_c)/N(n): ``ours`` was +1.25 ± 0.29 % off ``path`` on the tilted Cornell box).
 Target directions below the true surface have f = 0 and weight 0. The target is drawn with one of the proposals:
-  ``bins``     without a loop: a bin k from the pair's memoised CDF of ``P_k·∫_k cos⁺``, then a direction of the bin
+  ``bins``     without a loop: a bin k from the pair's alias table of ``P_k·∫_k cos⁺``, then a direction of the bin
                ∝ ``cos(ω, n_c)``, the first of ``IN_BIN_PROPOSALS`` uniform proposals in the bin accepted against
                the bin's bound (most bins accept ~90 % of proposals, bins across the horizon less); r, the chance
                that all are rejected, is memoised per pair (``in_bin_miss``);
@@ -45,7 +45,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .base import Guide, UpdateResult, rgb_mean
-from .cdf_rows import sample_rows
+from . import alias_rows
 from .grid_record import IN_BIN_PROPOSALS, PairMemo, RadianceRecord, table_needs
 from .parameters import (PROFILE_BSDF_PATHS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
                          with_overrides)
@@ -79,16 +79,17 @@ class _Vertex:
     cell: mi.UInt32
     side: mi.Float
     pair: mi.UInt32 = None
-    memo: PairMemo = None          # the pair's N, CDF row, M and in-bin miss share
+    memo: PairMemo = None          # the pair's N, alias row, M and in-bin miss share
     centre: mi.Vector3f = None     # n_c, the normal bin's centre on the arrival side (world)
     bsdf_share: mi.Float = None    # u: bsdf_fraction, or max(ε_r, min_bsdf_share); ≥ smooth_bsdf_share if not diffuse
 
 
-def _direction_from_cdf(bins, cdf: mi.Float, cuts: mi.UInt32, row_id: mi.UInt32, sampler: mi.Sampler,
-                        active: mi.Bool) -> tuple[mi.Vector3f, mi.UInt32]:
-    """A bin drawn from one row of per-bin CDFs, then a uniform direction inside it: (world direction, bin)."""
-    k = sample_rows(cdf, cuts, row_id, bins.count, sampler.next_1d(active), active)
-    return bins.sample(k, sampler.next_2d(active)), k
+def _direction_from_alias(bins, slots: mi.Float, row: mi.UInt32, sampler: mi.Sampler,
+                          active: mi.Bool) -> tuple[mi.Vector3f, mi.UInt32, mi.Float]:
+    """A bin drawn from one row of alias tables, then a uniform direction inside it: (world direction, bin, the
+    bin's density)."""
+    k, density = alias_rows.sample(slots, row, bins.count, sampler.next_2d(active), active)
+    return bins.sample(k, sampler.next_2d(active)), k, density
 
 
 def _first_accepted(sampler, searching, propose, accepts, count: int) -> tuple[mi.Vector3f, mi.Bool, mi.UInt32]:
@@ -277,10 +278,10 @@ class GridGuide(Guide):
             return bs, weight * 0.5, self._index_taken(si, si.to_world(bs.wo))
         if self.sampler.endswith("_inv"):
             use_guide = guided & (sampler.next_1d(guided) >= vertex.bsdf_share)
-            guide_world, guide_bin = self._sample_inversion(sampler, vertex, use_guide)
+            guide_world, guide_bin, guide_density = self._sample_inversion(sampler, vertex, use_guide)
         else:
             searching = guided & (sampler.next_1d(guided) >= vertex.bsdf_share)
-            guide_world, guide_bin, use_guide = self._sample_rejection(sampler, vertex, searching)
+            guide_world, guide_bin, guide_density, use_guide = self._sample_rejection(sampler, vertex, searching)
         guide_wo = si.to_local(guide_world)
         guide_value, guide_bsdf_pdf, bs, bsdf_weight = bsdf.eval_pdf_sample(
             bsdf_ctx, si, guide_wo, sampler.next_1d(guided), sampler.next_2d(guided), guided)
@@ -290,10 +291,12 @@ class GridGuide(Guide):
         value = dr.select(use_guide, guide_value, bsdf_weight * bs.pdf)
         bsdf_pdf = dr.select(use_guide, guide_bsdf_pdf, bs.pdf)
         world = dr.select(use_guide, guide_world, si.to_world(bs.wo))
-        chosen_bin = None
+        chosen_bin = bin_density = None
         if guide_bin is not None:
+            bsdf_lanes = guided & ~use_guide
             chosen_bin = dr.select(use_guide, guide_bin, table.fine_bin(world))
-        pdf = self._mixture_pdf(vertex, world, bsdf_pdf, chosen_bin)
+            bin_density = dr.select(use_guide, guide_density, self._bin_density(vertex, chosen_bin, bsdf_lanes))
+        pdf = self._mixture_pdf(vertex, world, bsdf_pdf, chosen_bin, bin_density)
 
         weight = dr.select(pdf > 0, value / pdf, 0)
         self._count("guided", 1, guided)
@@ -362,34 +365,42 @@ class GridGuide(Guide):
                                           vertex.bsdf_share)
         return vertex
 
-    def _mixture_pdf(self, vertex, world: mi.Vector3f, bsdf_pdf: mi.Float, chosen_bin=None) -> mi.Float:
+    def _bin_density(self, vertex, fine_bin: mi.UInt32, active: mi.Bool) -> mi.Float:
+        """The alias table's density of bin ``fine_bin`` (with refinement ``bin·R² + sub-bin``; the bin's) in the
+        vertex's row: the cell's for ``sphere_inv``, the pair's for the hemisphere samplers."""
+        table = self.record_table
+        k = fine_bin // table.fine if table.refinement else fine_bin
+        if self.sampler == "sphere_inv":
+            return table.cell_density(vertex.cell, k, active)
+        return table.hemi_density(vertex.memo.row, k, active)
+
+    def _mixture_pdf(self, vertex, world: mi.Vector3f, bsdf_pdf: mi.Float, chosen_bin=None,
+                     bin_density=None) -> mi.Float:
         """Density of the mixture ``α·p_bsdf + (1 − α)·p_guide`` at world direction ``world``, given ``p_bsdf``.
 
         ``chosen_bin``: the bin ``world`` was drawn in (or looked up in; with refinement ``bin·R² + sub-bin``),
-        whose density is reported. Looking the direction up again can give a neighbour when it lies within rounding
-        of a bin boundary, and a neighbour whose CDF step is below float32 resolution would report density 0 for a
-        direction the guide drew."""
+        whose density is reported, and ``bin_density`` its density in the alias table where known (from the draw).
+        Looking the direction up again can give a neighbour when it lies within rounding of a bin boundary, and a
+        neighbour of negligible weight would report density 0 for a direction the guide drew."""
         table = self.record_table
         refinement = table.refinement
         k = table.fine_bin(world) if chosen_bin is None else chosen_bin
+        if bin_density is None and (self.sampler.endswith("_inv") or self.proposal == "bins"):
+            bin_density = self._bin_density(vertex, k, vertex.guided)
         if refinement:
             k, sub = k // table.fine, k % table.fine
-        if self.sampler == "sphere_inv":
+        if self.sampler.endswith("_inv"):
             share = vertex.bsdf_share
-            policy = dr.gather(mi.Float, table.policy, vertex.cell * table.bins.count + k, vertex.guided)
-            return share * bsdf_pdf + (1 - share) * policy / table.bins.solid_angle
-        if self.sampler == "hemi_inv":
-            share = vertex.bsdf_share
-            return share * bsdf_pdf + (1 - share) * table.hemi_density_at(vertex.memo.row, k, vertex.guided)
+            return share * bsdf_pdf + (1 - share) * bin_density
         if self.proposal == "bins":
             miss_all = vertex.memo.in_bin_miss
             cosine = dr.maximum(dr.dot(world, vertex.centre), 0)
-            guide_density = table.hemi_density_at(vertex.memo.row, k, vertex.guided) * cosine
+            guide_density = bin_density * cosine
             if refinement:
                 entry = vertex.cell * table.bins.count + k
                 refined = refinement.sampled(entry, vertex.guided)
-                guide_density = dr.select(refined, table.hemi_probability(vertex.memo.row, k, refined)
-                                          * refinement.density(entry, sub, refined), guide_density)
+                guide_density = dr.select(refined, bin_density * refinement.density(entry, sub, refined),
+                                          guide_density)
         else:
             acceptance = vertex.memo.norm / (2 * dr.pi * vertex.memo.bound)
             miss_all = dr.power(1 - dr.minimum(acceptance, 1), self.max_proposals)
@@ -400,21 +411,24 @@ class GridGuide(Guide):
         share = 1 - (1 - vertex.bsdf_share) * (1 - miss_all)
         return share * bsdf_pdf + (1 - vertex.bsdf_share) * guide_density
 
-    def _sample_inversion(self, sampler, vertex, active) -> tuple[mi.Vector3f, mi.UInt32]:
-        """A world direction drawn from the sampler's CDF row (the cell's, or the pair's), and its bin."""
+    def _sample_inversion(self, sampler, vertex, active) -> tuple[mi.Vector3f, mi.UInt32, mi.Float]:
+        """A world direction drawn from the sampler's alias row (the cell's, or the pair's), its bin and the bin's
+        density."""
         table = self.record_table
         if self.sampler == "sphere_inv":
-            return _direction_from_cdf(table.bins, table.cdf, table.cdf_cuts, vertex.cell, sampler, active)
-        return _direction_from_cdf(table.bins, table.hemi_cdf, table.hemi_cuts, vertex.memo.row, sampler, active)
+            return _direction_from_alias(table.bins, table.cell_alias, vertex.cell, sampler, active)
+        return _direction_from_alias(table.bins, table.hemi_alias, vertex.memo.row, sampler, active)
 
-    def _sample_rejection(self, sampler, vertex, searching) -> tuple[mi.Vector3f, mi.UInt32 | None, mi.Bool]:
-        """A world direction from the target ``P·cos⁺(ω, n_c)/N``: (direction, the bin it was drawn in or None,
-        whether it was accepted; the lanes that were not fall back to the BSDF's direction)."""
+    def _sample_rejection(self, sampler, vertex, searching) -> tuple[mi.Vector3f, mi.UInt32 | None, mi.Float | None,
+                                                                     mi.Bool]:
+        """A world direction from the target ``P·cos⁺(ω, n_c)/N``: (direction, the bin it was drawn in and the bin's
+        density, or None, whether it was accepted; the lanes that were not fall back to the BSDF's direction)."""
         table = self.record_table
         centre = vertex.centre
+        k = density = None
         if self.proposal == "bins":
-            k = sample_rows(table.hemi_cdf, table.hemi_cuts, vertex.memo.row, table.bins.count,
-                            sampler.next_1d(searching), searching)
+            k, density = alias_rows.sample(table.hemi_alias, vertex.memo.row, table.bins.count,
+                                           sampler.next_2d(searching), searching)
             if table.refinement:
                 entry = vertex.cell * table.bins.count + k
                 refined = table.refinement.sampled(entry, searching)
@@ -428,7 +442,6 @@ class GridGuide(Guide):
                 return sampler.next_1d(active) * bound < dr.dot(candidate, centre)
         else:
             frame = mi.Frame3f(centre)
-            k = None
 
             def propose(sampler, active):
                 return frame.to_world(mi.warp.square_to_uniform_hemisphere(sampler.next_2d(active)))
@@ -447,11 +460,11 @@ class GridGuide(Guide):
         self._count("accepted", 1, accepted)
         if self.proposal == "bins" and table.refinement:
             # A refined bin: its sub-bin from π, a uniform direction in it, nothing rejected.
-            sub_wo, sub = table.refinement.sample(k, entry, sampler.next_1d(refined), sampler.next_2d(refined), refined)
+            sub_wo, sub = table.refinement.sample(k, entry, sampler.next_2d(refined), sampler.next_2d(refined), refined)
             wo = dr.select(refined, sub_wo, wo)
             accepted |= refined
             k = k * table.fine + dr.select(refined, sub, 0)
-        return wo, k, accepted
+        return wo, k, density, accepted
 
     @dr.syntax
     def _rejection_loop(self, sampler, searching, propose, accepts, cap: int) -> tuple[mi.Vector3f, mi.Bool, mi.UInt32]:

@@ -5,20 +5,20 @@ Layout: ``S³`` cells × ``B = 2·D²`` direction bins, flat, index ``cell·B + 
 with Dr.Jit reductions and prefix sums (no host round trip but one ``dr.compress`` of the visited pairs).
 
 Life cycle: :meth:`RadianceRecord.update` turns the accumulated targets (never cleared: ``Q = Σ target / visits``,
-the learning rate 1/N) into Q, the policy ``P = (1 − ε)·(Q + 1e-6)/Σ(Q + 1e-6) + ε/B`` (ε floored, see ``MIN_EXPLORATION``), the per-cell CDF (for
-``sphere_inv``), and the memo tables of the (cell, normal bin) pairs the last passes visited:
+the learning rate 1/N) into Q, the policy ``P = (1 − ε)·(Q + 1e-6)/Σ(Q + 1e-6) + ε/B`` (ε floored, see
+``MIN_EXPLORATION``), the per-cell alias table of P (``cell_alias``, for ``sphere_inv``), and the memo tables of
+the (cell, normal bin) pairs the last passes visited:
 
 - ``pair_memo``, a :class:`PairMemo` per pair, its four floats side by side so that a vertex reads them with one
   packet gather (the CPU backend compiles every gather of a single float into a load per lane):
-  N = ∫_H P·cos dω, the normalising term of the hemisphere samplers; the row number of the pair's CDF;
+  N = ∫_H P·cos dω, the normalising term of the hemisphere samplers; the row number of the pair's alias table;
   M ≥ max_H P·cos over every normal of the normal bin (a true bound, so rejection is exact); the in-bin miss share,
 - ``value`` V = ∫_H Q·cos dω, Expected SARSA's expectation,
-- ``hemi_cdf`` the CDF over bins of P·∫_bin cos (``hemi_inv``, and the ``bins`` proposal of the rejection samplers),
-  one row per visited pair only, with its cut points (:mod:`~guiding.guides.cdf_rows`): 469 rows on cornell-box at
-  S = 8, against the 76 800 pairs of the grid (157 MB dense, and a binary search in it missed the caches),
-- ``hemi_density``, beside each CDF row, the guide's density in each bin, read with one gather where the CDF step
-  and the in-bin scale took three: ``P_k·s_k`` per unit cos⁺(ω, n_c) for the ``bins`` proposal, ``P_k/A`` per
-  steradian for ``hemi_inv``.
+- ``hemi_alias``, the alias table (:mod:`~guiding.guides.alias_rows`) of P·∫_bin cos over the bins (``hemi_inv``,
+  and the ``bins`` proposal of the rejection samplers), one row per visited pair only (469 rows on cornell-box at
+  S = 8, against the 76 800 pairs of the grid); a slot's read gives the drawn bin with its density:
+  ``P_k·s_k`` per unit cos⁺(ω, n_c) for the ``bins`` proposal (``P_k`` alone for a refined bin, whose sub-bin
+  density multiplies it), ``P_k/A`` per steradian for ``hemi_inv``.
 
 N and V use the cosine integrals at the normal bin's centre (exact there; the error elsewhere is measured in
 ``results/``), from a quadrature of at least 8×8 points per bin (more below D = 16, see ``quadrature_points``).
@@ -33,7 +33,7 @@ import mitsuba as mi
 
 from ..directions import NormalBins, SphereBins
 from ..errors import GuidingError
-from .cdf_rows import cut_count, cut_points, normalised_cdf
+from . import alias_rows
 from .grid_cells import GridCells
 from .grid_refinement import BinRefinement
 from .parameters import MIN_EXPLORATION
@@ -66,11 +66,9 @@ REACHABLE_FLOOR = 0.01
 #: drawn; when all are rejected the BSDF's direction is used, with the pair's probability ``in_bin_miss`` of that in
 #: the density. Interior bins accept ~90 % of proposals; bins across the horizon less, and they are rarely drawn.
 IN_BIN_PROPOSALS = 2
-#: Bytes per entry of the visited pairs' CDF rows while they are built: the row (4), its density (4), its weights
-#: and their prefix sums (evaluated by the scan), and the gathered indices; and per cut point: the point and its
-#: histogram entry.
-ROW_BUILD_BYTES = 20
-CUT_BUILD_BYTES = 8
+#: Bytes per bin of the visited pairs' alias rows while they are built: the slots, and the temporaries of their
+#: construction and of the weights.
+ROW_BUILD_BYTES = alias_rows.SLOT_BYTES + alias_rows.BUILD_BYTES + 8
 #: Floats per pair in ``pair_memo`` (:class:`PairMemo`).
 PAIR_FIELDS = 4
 
@@ -80,18 +78,18 @@ class PairMemo:
     """What the samplers read about a vertex's (cell, normal bin) pair (:meth:`RadianceRecord.memo`)."""
 
     norm: mi.Float          # N at the normal bin's centre; 0: no memo yet (the pair was not visited before)
-    row: mi.UInt32          # the pair's row of ``hemi_cdf`` (its bits stored in a float slot)
+    row: mi.UInt32          # the pair's row of ``hemi_alias`` (its bits stored in a float slot)
     bound: mi.Float         # M ≥ max P·cos(ω, n) over the normal bin
     in_bin_miss: mi.Float   # the chance that every in-bin proposal is rejected (``bins`` proposal)
 
 
 def table_needs(rule: str, sampler: str, proposal: str) -> dict[str, bool]:
     """The tables a grid guide with this rule, sampler and proposal needs (the ``needs_*`` arguments of
-    :class:`RadianceRecord`): the sphere CDF for sphere_inv, the memo tables for the hemisphere samplers, the
-    per-pair CDFs for hemi_inv and for the rejection samplers' ``bins`` proposal, V for Expected SARSA."""
+    :class:`RadianceRecord`): the cells' alias tables for sphere_inv, the memo tables for the hemisphere samplers,
+    the per-pair alias tables for hemi_inv and for the rejection samplers' ``bins`` proposal, V for Expected SARSA."""
     in_bin = sampler.startswith("hemi_rej") and proposal == "bins"
-    return {"needs_cdf": sampler == "sphere_inv", "needs_memo": sampler.startswith("hemi"),
-            "needs_hemi_cdf": sampler == "hemi_inv" or in_bin, "needs_in_bin": in_bin,
+    return {"needs_cell_alias": sampler == "sphere_inv", "needs_memo": sampler.startswith("hemi"),
+            "needs_hemi_alias": sampler == "hemi_inv" or in_bin, "needs_in_bin": in_bin,
             "needs_value": rule == "expected_sarsa"}
 
 
@@ -120,10 +118,11 @@ class RadianceRecord:
       spatial_resolution: S, cells per axis of the scene's bounding box.
       directional_resolution: D (``2·D²`` bins).
       normal_resolution: R, odd, of the ``6·R²`` cube-map normal bins of the memo tables.
-      needs_cdf: build the per-cell CDF over the sphere (``sphere_inv``).
+      needs_cell_alias: build the per-cell alias table over the sphere (``sphere_inv``).
       needs_memo: build N and M for visited (cell, normal bin) pairs (hemisphere samplers).
-      needs_hemi_cdf: build the per-pair CDFs (``hemi_inv``; with ``needs_in_bin``, the rejection samplers').
-      needs_in_bin: the per-pair CDFs weigh each bin by its exact ∫ cos⁺(ω, n_c) (the rejection target, no floor),
+      needs_hemi_alias: build the per-pair alias tables (``hemi_inv``; with ``needs_in_bin``, the rejection
+        samplers').
+      needs_in_bin: the per-pair tables weigh each bin by its exact ∫ cos⁺(ω, n_c) (the rejection target, no floor),
         and the in-bin rejection's tables are built (``in_bin_bound``, ``in_bin_scale``, ``in_bin_misses``, and
         the pairs' in-bin miss share).
       needs_value: build V (Expected SARSA).
@@ -134,7 +133,7 @@ class RadianceRecord:
     """
 
     def __init__(self, spatial_resolution: int, directional_resolution: int, normal_resolution: int = 5,
-                 needs_cdf: bool = False, needs_memo: bool = False, needs_hemi_cdf: bool = False,
+                 needs_cell_alias: bool = False, needs_memo: bool = False, needs_hemi_alias: bool = False,
                  needs_in_bin: bool = False, needs_value: bool = False, min_exploration: float = MIN_EXPLORATION,
                  sub_resolution: int = 1, refine_share: float = 0.05, refine_capacity: int = 0):
         self.grid = GridCells(spatial_resolution)
@@ -143,30 +142,25 @@ class RadianceRecord:
         self.bins = SphereBins(directional_resolution)
         self.normal_bins = NormalBins(normal_resolution)
         self.cells = self.grid.count
-        self.needs_cdf, self.needs_hemi_cdf, self.needs_value = needs_cdf, needs_hemi_cdf, needs_value
+        self.needs_cell_alias, self.needs_hemi_alias, self.needs_value = needs_cell_alias, needs_hemi_alias, needs_value
         self.needs_in_bin = needs_in_bin
-        self.needs_pairs = needs_memo or needs_hemi_cdf or needs_in_bin or needs_value
+        self.needs_pairs = needs_memo or needs_hemi_alias or needs_in_bin or needs_value
         B, NB, C = self.bins.count, self.normal_bins.count, self.cells
 
         self.sanitised: dict[str, int] = {}
-        self.row_memory_limit: int | None = None     # bytes the visited pairs' CDF rows may take (None: no limit)
+        self.row_memory_limit: int | None = None     # bytes the visited pairs' alias rows may take (None: no limit)
         self.acc_sum = dr.zeros(mi.Float64, C * B)
         self.acc_count = dr.zeros(mi.Float64, C * B)
         self.pass_targets = pass_sums(C * B)
         self.q = dr.zeros(mi.Float, C * B)
         self.policy = dr.full(mi.Float, 1.0 / B, C * B)
-        self.cdf = self.cdf_cuts = None
-        if needs_cdf:
-            self.cdf = dr.tile(dr.arange(mi.Float, 1, B + 1) / B, C)
-            self.cdf_cuts = cut_points(self.cdf, B)
+        self.cell_alias = alias_rows.build(self.policy, B, 1 / self.bins.solid_angle) if needs_cell_alias else None
         if self.needs_pairs:
             self.visited = dr.zeros(mi.UInt32, C * NB)
             self.pair_memo = dr.zeros(mi.Float, PAIR_FIELDS * C * NB)
             self.value = dr.zeros(mi.Float, C * NB)
             # A row, never read, until a visit.
-            self.hemi_cdf = dr.zeros(mi.Float, B) if needs_hemi_cdf else None
-            self.hemi_density = dr.zeros(mi.Float, B) if needs_hemi_cdf else None
-            self.hemi_cuts = dr.zeros(mi.UInt32, cut_count(B)) if needs_hemi_cdf else None
+            self.hemi_alias = dr.zeros(mi.Float, alias_rows.SLOT_FIELDS * B) if needs_hemi_alias else None
             self.cos_integral, self.max_cos = self._cosine_tables()
             self.in_bin_bound, self.in_bin_scale, self.in_bin_misses = (self._in_bin_tables() if needs_in_bin
                                                                         else (None, None, None))
@@ -175,7 +169,7 @@ class RadianceRecord:
         self.sub_resolution = sub_resolution
         self.fine = sub_resolution * sub_resolution
         self.refined_stats: dict[str, int] = {}
-        dr.eval(self.policy, self.cdf, self.cdf_cuts)
+        dr.eval(self.policy)
 
     # ------------------------------------------------------------------ geometry
     def set_bounds(self, bbox: mi.BoundingBox3f) -> None:
@@ -207,15 +201,13 @@ class RadianceRecord:
         """Flat (cell, normal bin) index of a cell and a unit normal."""
         return cell * self.normal_bins.count + self.normal_bins.index(n)
 
-    def hemi_probability(self, row: mi.UInt32, k: mi.UInt32, active: mi.Bool) -> mi.Float:
-        """P_k of bin ``k`` in CDF row ``row`` of ``hemi_cdf``: the step of the CDF, exactly as its sampler draws it."""
-        first = row * self.bins.count
-        above = dr.gather(mi.Float, self.hemi_cdf, first + k, active)
-        return above - dr.gather(mi.Float, self.hemi_cdf, first + k - 1, active & (k > 0))
+    def hemi_density(self, row: mi.UInt32, k: mi.UInt32, active: mi.Bool) -> mi.Float:
+        """The density of bin ``k`` in row ``row`` of ``hemi_alias`` (see the module's docstring)."""
+        return alias_rows.density(self.hemi_alias, row, self.bins.count, k, active)
 
-    def hemi_density_at(self, row: mi.UInt32, k: mi.UInt32, active: mi.Bool) -> mi.Float:
-        """``hemi_density`` of bin ``k`` in row ``row``: one gather where the density needed three."""
-        return dr.gather(mi.Float, self.hemi_density, row * self.bins.count + k, active)
+    def cell_density(self, cell: mi.UInt32, k: mi.UInt32, active: mi.Bool) -> mi.Float:
+        """The density (per steradian) of bin ``k`` in ``cell``'s row of ``cell_alias``."""
+        return alias_rows.density(self.cell_alias, cell, self.bins.count, k, active)
 
     def memo(self, pair: mi.UInt32, active: mi.Bool) -> PairMemo:
         """The memo of (cell, normal bin) pairs ``pair``, read with one packet gather."""
@@ -335,10 +327,9 @@ class RadianceRecord:
         cell_of = dr.arange(mi.UInt32, self.cells * B) // B
         totals = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, shifted, B), cell_of)
         self.policy = (1 - epsilon) * shifted / totals + epsilon / B
-        if self.needs_cdf:
-            self.cdf = normalised_cdf(self.policy, B)
-            self.cdf_cuts = cut_points(self.cdf, B)
-        dr.eval(self.q, self.policy, self.cdf, self.cdf_cuts)
+        dr.eval(self.q, self.policy)
+        if self.needs_cell_alias:
+            self.cell_alias = alias_rows.build(self.policy, B, 1 / self.bins.solid_angle)
         if self.refinement:
             self.refined_stats = self.refinement.update(self.policy, self.q, visits)
         return self._update_memo() if self.needs_pairs else 0
@@ -363,9 +354,9 @@ class RadianceRecord:
         count = dr.width(pairs)
         if count == 0:
             return 0
-        row_bytes = count * (B * ROW_BUILD_BYTES + (cut_count(B) + 1) * CUT_BUILD_BYTES)
+        row_bytes = count * B * ROW_BUILD_BYTES
         if self.row_memory_limit is not None and row_bytes > self.row_memory_limit:
-            raise GuidingError(f"the grid guide visited {count} (cell, normal bin) pairs: their CDF rows need "
+            raise GuidingError(f"the grid guide visited {count} (cell, normal bin) pairs: their alias rows need "
                                f"{row_bytes / 2 ** 30:.1f} GiB to build, over the "
                                f"{self.row_memory_limit / 2 ** 30:.1f} GiB left by the memory limit; lower S or D, "
                                "or raise the limit")
@@ -383,51 +374,49 @@ class RadianceRecord:
         if self.needs_value:
             q = dr.gather(mi.Float, self.q, cell * B + k)
             dr.scatter(self.value, dr.block_reduce(dr.ReduceOp.Add, q * cos_integral, B), pairs)
-        if self.needs_hemi_cdf:
+        if self.needs_hemi_alias:
             if self.needs_in_bin:
                 weight = p * cos_integral
                 miss = dr.gather(mi.Float, self.in_bin_misses, nb * B + k)
-                if self.refinement:     # a refined bin draws its direction without rejection
-                    miss = dr.select(self.refinement.sampled(cell * B + k, True), 0, miss)
+                scale = dr.gather(mi.Float, self.in_bin_scale, nb * B + k)
+                if self.refinement:     # a refined bin draws its direction without rejection, from its sub-bins
+                    refined = self.refinement.sampled(cell * B + k, True)
+                    miss, scale = dr.select(refined, 0, miss), dr.select(refined, 1, scale)
                 total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, B), flat // B)
                 in_bin_miss = dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, B)
             else:
                 weight = p * dr.maximum(cos_integral, dr.select(max_cos > 0, REACHABLE_FLOOR * self.bins.solid_angle, 0))
-            self.hemi_cdf = normalised_cdf(weight, B)
-            self.hemi_cuts = cut_points(self.hemi_cdf, B)
-            step = self.hemi_probability(flat // B, k, True)
-            self.hemi_density = (step * dr.gather(mi.Float, self.in_bin_scale, nb * B + k) if self.needs_in_bin
-                                 else step / self.bins.solid_angle)
+                scale = 1 / self.bins.solid_angle
+            self.hemi_alias = alias_rows.build(weight, B, scale)
             row = dr.arange(mi.UInt32, count)
         dr.scatter(self.pair_memo, mi.Vector4f(norm, dr.reinterpret_array(mi.Float, row), bound, in_bin_miss), pairs)
-        dr.eval(self.pair_memo, self.value, self.hemi_cdf, self.hemi_cuts, self.hemi_density)
+        dr.eval(self.pair_memo, self.value, self.hemi_alias)
         return count
 
     @staticmethod
     def planned_bytes(spatial_resolution: int, directional_resolution: int, normal_resolution: int = 5,
-                      needs_cdf: bool = False, needs_memo: bool = False, needs_hemi_cdf: bool = False,
+                      needs_cell_alias: bool = False, needs_memo: bool = False, needs_hemi_alias: bool = False,
                       needs_in_bin: bool = False, needs_value: bool = False, sub_resolution: int = 1,
                       refine_capacity: int = 0) -> int:
         """The bytes of the tables whose size is fixed when a record is built with these arguments, computed
-        without allocating anything (so that an oversized table can be refused before it is built). The CDF rows of
-        the visited pairs (``hemi_cdf`` and ``hemi_density``, rows of 2·D² floats, and G packed cut points per pair)
-        come on top: they grow with the visits, and :meth:`_update_memo` checks them against ``row_memory_limit``."""
+        without allocating anything (so that an oversized table can be refused before it is built). The alias rows
+        of the visited pairs (``hemi_alias``, 2·D² slots per pair) come on top: they grow with the visits, and
+        :meth:`_update_memo` checks them against ``row_memory_limit``."""
         C, B, NB = spatial_resolution ** 3, 2 * directional_resolution ** 2, 6 * normal_resolution ** 2
-        cuts = cut_count(B)
         total = C * B * (8 + 8 + 8 + 8 + 4 + 4)                # totals, pass sums, Q, policy
-        if needs_cdf:
-            total += 4 * C * (B + cuts)                          # CDF and its cut points
-        if needs_memo or needs_hemi_cdf or needs_in_bin or needs_value:
-            total += 4 * ((PAIR_FIELDS + 2) * C * NB + ((2 * B + cuts) if needs_hemi_cdf else 0)
-                          + (5 if needs_in_bin else 2) * NB * B)   # placeholder row, cosine and in-bin tables
+        if needs_cell_alias:
+            total += alias_rows.SLOT_BYTES * C * B               # the cells' alias tables
+        if needs_memo or needs_hemi_alias or needs_in_bin or needs_value:
+            total += 4 * ((PAIR_FIELDS + 2) * C * NB + (5 if needs_in_bin else 2) * NB * B)   # cosine, in-bin tables
+            total += alias_rows.SLOT_BYTES * B if needs_hemi_alias else 0                      # placeholder row
         if sub_resolution > 1:
             total += BinRefinement.planned_bytes(C * B, sub_resolution, refine_capacity)
         return total
 
     def memory_bytes(self) -> int:
-        arrays = [self.acc_sum, self.acc_count, self.pass_targets, self.q, self.policy, self.cdf, self.cdf_cuts]
+        arrays = [self.acc_sum, self.acc_count, self.pass_targets, self.q, self.policy, self.cell_alias]
         if self.needs_pairs:
-            arrays += [self.visited, self.pair_memo, self.value, self.hemi_cdf, self.hemi_density, self.hemi_cuts,
+            arrays += [self.visited, self.pair_memo, self.value, self.hemi_alias,
                        self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_scale, self.in_bin_misses]
         refined = self.refinement.memory_bytes() if self.refinement else 0
         return refined + sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays if a is not None)

@@ -30,7 +30,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .cdf_rows import cut_count, cut_points, normalised_cdf, sample_rows
+from . import alias_rows
 from .pass_sums import add_target, entry_sums, pass_sums
 
 #: Slot of an entry that is not refined.
@@ -84,20 +84,19 @@ class BinRefinement:
         self.acc_count = dr.zeros(mi.Float64, size)
         self.pass_targets = pass_sums(size)
         self.probability = dr.full(mi.Float, 1 / self.sub, size)
-        self.cdf = normalised_cdf(self.probability, self.sub)
-        self.cuts = cut_points(self.cdf, self.sub)
-        dr.eval(self.slot, self.cdf, self.cuts)
+        self.alias = alias_rows.build(self.probability, self.sub, self._density_scale())
+        dr.eval(self.slot)
 
     @staticmethod
     def planned_bytes(entries: int, resolution: int, capacity: int) -> int:
         """Bytes of the tables of a refinement built with these arguments (all allocated up front)."""
         sub = resolution * resolution
         return (4 * entries + 2 * 4 * ((entries + 31) // 32) + 4 * capacity
-                + capacity * (sub * (8 + 8 + 16 + 4 + 4) + 4 * cut_count(sub)))
+                + capacity * sub * (8 + 8 + 16 + 4 + alias_rows.SLOT_BYTES))
 
     def memory_bytes(self) -> int:
         arrays = [self.slot, self.sampling_mask, self.learning_mask, self.entry_of, self.acc_sum, self.acc_count,
-                  self.pass_targets, self.probability, self.cdf, self.cuts]
+                  self.pass_targets, self.probability, self.alias]
         return sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays)
 
     # ------------------------------------------------------------------ device side
@@ -119,7 +118,7 @@ class BinRefinement:
             add_target(self.pass_targets, slot * self.sub + sub, target, learning)
 
     @dr.syntax
-    def sample(self, k: mi.UInt32, entry: mi.UInt32, u: mi.Float, square: mi.Point2f,
+    def sample(self, k: mi.UInt32, entry: mi.UInt32, u: mi.Point2f, square: mi.Point2f,
                active: mi.Bool) -> tuple[mi.Vector3f, mi.UInt32]:
         """For the sampled ``entry`` lanes (bin ``k`` of their cell): a sub-bin drawn from π with ``u``, and a uniform
         direction in it from ``square``: (world direction, sub-bin)."""
@@ -127,19 +126,23 @@ class BinRefinement:
         j = mi.UInt32(0)
         if active:
             slot = dr.gather(mi.UInt32, self.slot, entry, active)
-            j = sample_rows(self.cdf, self.cuts, slot, self.sub, u, active)
+            j, _ = alias_rows.sample(self.alias, slot, self.sub, u, active)
             direction = self.bins.sample_sub(k, j, self.R, square)
         return direction, j
 
     @dr.syntax
     def density(self, entry: mi.UInt32, sub: mi.UInt32, active: mi.Bool) -> mi.Float:
-        """Density (solid angle) within a sampled refined bin of its sub-bin ``sub``: ``π_j·R²/A``."""
+        """Density (solid angle) within a sampled refined bin of its sub-bin ``sub``: ``π_j·R²/A``, with π_j as
+        :meth:`sample` draws it."""
         value = mi.Float(0)
         if active:
             slot = dr.gather(mi.UInt32, self.slot, entry, active)
-            value = dr.gather(mi.Float, self.probability, slot * self.sub + sub, active)
-            value *= self.sub / self.bins.solid_angle
+            value = alias_rows.density(self.alias, slot, self.sub, sub, active)
         return value
+
+    def _density_scale(self) -> float:
+        """From a sub-bin's probability to its density within the bin (solid angle): R²/A."""
+        return self.sub / self.bins.solid_angle
 
     # -------------------------------------------------------------------- host side
     def update(self, policy: mi.Float, q: mi.Float, visits: mi.Float64) -> dict:
@@ -210,8 +213,6 @@ class BinRefinement:
         total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, shifted, self.sub), flat // self.sub)
         probability = (1 - SUB_EXPLORATION) * shifted / total + SUB_EXPLORATION / self.sub
         dr.scatter(self.probability, probability, flat)
-        cdf = normalised_cdf(probability, self.sub)
-        dr.scatter(self.cdf, cdf, flat)
-        cuts = cut_points(cdf, self.sub)
-        dr.scatter(self.cuts, cuts, dr.arange(mi.UInt32, self.used * cut_count(self.sub)))
-        dr.eval(self.probability, self.cdf, self.cuts)
+        slots = alias_rows.build(probability, self.sub, self._density_scale())
+        dr.scatter(self.alias, slots, dr.arange(mi.UInt32, dr.width(slots)))
+        dr.eval(self.probability, self.alias)

@@ -14,7 +14,7 @@ RULES = ("mc", "sarsa", "expected_sarsa")
 #: reflecting BSDF without a delta lobe: rough plastic and conductors too).
 GUIDED_BSDFS = ("diffuse", "smooth")
 SAMPLERS = ("sphere_inv", "hemi_inv", "hemi_rej", "hemi_rej_plus")
-#: How the rejection samplers draw their target: ``bins`` (exactly: a bin from the pair's CDF of P·∫cos, then a
+#: How the rejection samplers draw their target: ``bins`` (exactly: a bin from the pair's alias table of P·∫cos, then a
 #: direction ∝ cos inside it) or the paper's loop of ``uniform`` proposals (see :mod:`guiding.guides.grid`).
 PROPOSALS = ("bins", "uniform")
 #: Benchmark instrument (``profile_stage`` of :class:`GridParameters`): the parts of the grid guide's bounce, switched
@@ -53,7 +53,7 @@ PAPER_PIXELS = 1280 * 720
 PAPER_SPP_UNIT = 4
 
 #: Floor of the exploration share ε of the grid policy. The paper's schedule alone drives ε to 1e-10 by 1000 spp;
-#: unexplored bins then get probabilities below float32 resolution in the CDFs, are never sampled, and the image is
+#: unexplored bins then get probabilities below float32 resolution in the tables, are never sampled, and the image is
 #: biased (measured: −20 % image mean on `cornell` with hemi_inv). With the floor every bin keeps ≥ ε_min/B.
 MIN_EXPLORATION = 0.1
 

@@ -13,6 +13,7 @@ import mitsuba as mi
 import numpy as np
 
 from guiding.directions import NormalBins, SphereBins
+from guiding.guides.alias_rows import SLOT_FIELDS
 from guiding.guides.grid import GridGuide
 from guiding.guides.grid_record import Q_LIMIT
 from guiding.methods import grid_parameters
@@ -62,7 +63,7 @@ def fill_record(record, sums: np.ndarray, counts: np.ndarray) -> None:
 
 def record_arrays(record) -> dict:
     """Every table an update builds, as NumPy arrays."""
-    names = ["q", "policy", "cdf", "value", "hemi_cdf", "hemi_density"]
+    names = ["q", "policy", "cell_alias", "value", "hemi_alias"]
     arrays = {name: np.array(getattr(record, name)) for name in names if getattr(record, name, None) is not None}
     if record.needs_pairs:
         arrays.update(record.memo_columns())
@@ -71,8 +72,9 @@ def record_arrays(record) -> dict:
 
 def record_violations(record) -> list[str]:
     """What is wrong with a record's tables after an update: anything non-finite, a policy entry that is not a
-    positive normal float or a cell whose policy does not sum to 1, a CDF that decreases or does not end at exactly
-    1, a memo with N ≤ 0 or a bound M below the mean ū = N/2π of P·cos, or Q outside [0, Q_LIMIT]."""
+    positive normal float or a cell whose policy does not sum to 1, an alias table with a threshold outside [0, 1],
+    an alias outside its row or density 0 for a bin it draws, a memo with N ≤ 0 or a bound M below the mean
+    ū = N/2π of P·cos, or Q outside [0, Q_LIMIT]."""
     B = record.bins.count
     tables = record_arrays(record)
     problems = [f"{name} has {np.count_nonzero(~np.isfinite(a))} non-finite entries" for name, a in tables.items()
@@ -85,18 +87,19 @@ def record_violations(record) -> list[str]:
     sums = policy.astype(np.float64).sum(axis=1)
     if not (np.abs(sums - 1) <= B * EPS32).all():
         problems.append(f"cell policies sum to {sums[np.abs(sums - 1) > B * EPS32][:3]}")
-    rows = [("cdf", tables.get("cdf"))]
-    if record.needs_pairs and record.hemi_cdf is not None:
+    rows = [("cell_alias", tables.get("cell_alias"))]
+    if record.needs_pairs and record.hemi_alias is not None:
         visited = np.count_nonzero(np.array(record.visited))       # one row per visited pair (a placeholder if none)
-        rows.append(("hemi_cdf", tables["hemi_cdf"].reshape(-1, B)[:visited]))
-    for name, cdf in rows:
-        if cdf is None:
+        rows.append(("hemi_alias", tables["hemi_alias"].reshape(-1, B * SLOT_FIELDS)[:visited]))
+    for name, slots in rows:
+        if slots is None:
             continue
-        cdf = cdf.reshape(-1, B)
-        if not (np.diff(cdf, axis=1) >= 0).all():
-            problems.append(f"{name} decreases in {np.count_nonzero((np.diff(cdf, axis=1) < 0).any(axis=1))} rows")
-        if not (cdf[:, -1] == 1).all():
-            problems.append(f"{name} rows end at {cdf[cdf[:, -1] != 1, -1][:3]} instead of 1")
+        slots = slots.reshape(-1, B, SLOT_FIELDS)
+        threshold, alias, density = slots[..., 0], slots[..., 1].view(np.uint32), slots[..., 2]
+        if not ((threshold >= 0) & (threshold <= 1) & (alias < B)).all():
+            problems.append(f"{name} has thresholds outside [0, 1] or aliases outside the row")
+        if not ((density >= 0).all() and (density[threshold > 0] > 0).all()):
+            problems.append(f"{name} has negative densities, or density 0 for a bin it draws")
     if record.needs_pairs:
         visited = np.array(record.visited) != 0
         norm, bound, value = tables["norm"][visited], tables["bound"][visited], tables["value"][visited]

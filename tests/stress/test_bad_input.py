@@ -17,7 +17,7 @@ import OpenEXR
 
 from guiding import imageio
 from guiding.cli import EXIT_INTERRUPTED
-from guiding.guides.bsdf import BSDFGuide
+from guiding.guides.base import Guide
 from guiding.scenes import PROJECT_ROOT
 from arrays import few
 from command_line import bad_input_violations, files_in, one_error_line, render_args, run_cli
@@ -136,7 +136,7 @@ def test_ctrl_c_while_tracing(tmp_path, monkeypatch, figures):
     def interrupt(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(BSDFGuide, "sample", interrupt)     # brdf's sample() runs inside the traced path loop
+    monkeypatch.setattr(Guide, "sample", interrupt)     # brdf's sampling (Guide.sample) runs in the traced loop
     out = tmp_path / "out"
     run = run_cli(render_args(str(out)))
     figures["exit_code"] = run.code

@@ -13,8 +13,8 @@ import pytest
 
 from guiding.errors import GuidingError
 from guiding.guides import PROPOSALS, RULES, SAMPLERS
+from guiding.guides.alias_rows import SLOT_BYTES
 from guiding.guides.grid import GridGuide
-from guiding.guides.cdf_rows import cut_count
 from guiding.guides.grid_record import RadianceRecord, table_needs
 from guiding.guides.grid_refinement import REFINE_VISITS
 from guiding.methods import MEMORY_LIMIT_VARIABLE, check_method, format_size, make_guide, table_bytes
@@ -28,8 +28,8 @@ OVERSIZED_METHOD = "ours-S64-D64"
 @pytest.mark.parametrize("rule", RULES)
 def test_planned_table_size_is_what_built_tables_report(rule, figures):
     """The size planned before allocation (`RadianceRecord.planned_bytes`, the fixed tables) bounds what a built
-    record reports, and with one CDF row per (cell, normal bin) pair equals it once every pair has been visited,
-    for every sampler and proposal (the per-pair CDFs hold rows for visited pairs only)."""
+    record reports, and with one alias row per (cell, normal bin) pair equals it once every pair has been visited,
+    for every sampler and proposal (the per-pair alias tables hold rows for visited pairs only)."""
     for sampler in SAMPLERS:
         for proposal in PROPOSALS:
             record = GridGuide(spatial_resolution=2, directional_resolution=3, rule=rule, sampler=sampler,
@@ -42,8 +42,8 @@ def test_planned_table_size_is_what_built_tables_report(rule, figures):
             record.update(spp_done=8)
             visited = record.memory_bytes()
             # every pair's row, in place of the placeholder row a fresh record holds
-            row = (2 * record.bins.count + cut_count(record.bins.count)) * 4     # CDF, density and cut points
-            rows = (record.cells * record.normal_bins.count - 1) * row if record.needs_hemi_cdf else 0
+            row = record.bins.count * SLOT_BYTES                                   # the pair's alias slots
+            rows = (record.cells * record.normal_bins.count - 1) * row if record.needs_hemi_alias else 0
             assert planned + rows == visited, f"{sampler} ({proposal}): planned {planned} + rows {rows} bytes, " \
                                               f"all pairs visited {visited}"
     figures["configurations"] = len(SAMPLERS) * len(PROPOSALS)
@@ -64,18 +64,18 @@ def test_refined_bins_are_planned_and_bounded():
         record.update(spp_done=spp_done)
         stats.append(record.refined_stats)
     assert stats[-1]["refined_bins"] == 5 and stats[-1]["refinements_refused"] == 139
-    rows = (record.cells * record.normal_bins.count - 1) * (2 * record.bins.count + cut_count(record.bins.count)) * 4
+    rows = (record.cells * record.normal_bins.count - 1) * record.bins.count * SLOT_BYTES
     assert record.memory_bytes() == fresh + rows     # the visited pairs' rows only: the refinement did not grow
 
 
 def test_visited_pairs_rows_over_the_limit_are_refused():
-    """The per-pair CDF rows grow with the visits: an update that would build more than the memory limit leaves
+    """The per-pair alias rows grow with the visits: an update that would build more than the memory limit leaves
     for them stops with one line naming the pairs and the bytes, rather than exhausting the machine."""
     guide = make_guide("ours-S2-D3", memory_limit=table_bytes("ours-S2-D3") + 100)
     record = guide.record_table
     assert record.row_memory_limit == 100
     record.visited = record.visited + 1
-    with pytest.raises(GuidingError, match=r"visited 1200 \(cell, normal bin\) pairs: their CDF rows need"):
+    with pytest.raises(GuidingError, match=r"visited 1200 \(cell, normal bin\) pairs: their alias rows need"):
         record.update(spp_done=8)
 
 

@@ -1,9 +1,10 @@
 """Samplers: densities and weights at extreme samples and at the worst acceptance rate a table can produce.
 
 hemi_inv recomputed the density of a direction from its bin, and a direction drawn at a bin's edge could be looked
-up in a neighbour whose CDF step is below float32 resolution: pdf 0 above the surface (policies with ε → 0). It
-now reports the density of the bin it drew in (`GridGuide._eval_pdf(chosen_bin=…)`). The rejection loop is capped
-by construction; the chi-square tests at the worst acceptance rates check that the fallback share is in the pdf.
+up in a neighbour whose probability is below float32 resolution: pdf 0 above the surface (policies with ε → 0). It
+now reports the density of the bin it drew in (`GridGuide._mixture_pdf(chosen_bin=…, bin_density=…)`). The
+rejection loop is capped by construction; the chi-square tests at the worst acceptance rates check that the fallback
+share is in the pdf.
 """
 
 import drjit as dr
@@ -35,7 +36,7 @@ def sample_at_extremes(guide, normal, position=(0.05, 0.05, 0.05)):
 
 @pytest.mark.parametrize("method", ["sarsa-sphere_inv", "sarsa-hemi_inv"])
 def test_grid_samplers_extreme_samples(method, figures):
-    """Grid samplers that invert CDFs without a loop (sphere_inv, hemi_inv) at u, uv ∈ {0, 0.5, 1 − 2⁻²⁴} on the
+    """Grid samplers that draw from tables without a loop (sphere_inv, hemi_inv) at u, uv ∈ {0, 0.5, 1 − 2⁻²⁴} on the
     most peaked tables: every direction returned above the surface has a positive, finite pdf, and every weight is
     finite."""
     lanes = 0

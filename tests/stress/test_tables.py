@@ -4,7 +4,7 @@ A NaN, ±Inf or negative accumulator entry made a whole cell's policy NaN for th
 accumulators are never cleared) and an SD-tree's probabilities NaN; an infinite vertex count would have split the
 S-tree to depth 60. `RadianceRecord.update` (via `_sanitise`) now drops such entries and clamps Q to 1e30
 (`Q_LIMIT`), the SD-tree's `_pull` zeroes bad energies and counts; both report `dropped_entries` (and the grid
-`clamped_entries`) in each pass's statistics. The CDF rows (`cdf_rows.normalised_cdf`) now end at exactly 1.
+`clamped_entries`) in each pass's statistics.
 """
 
 import numpy as np
@@ -15,8 +15,8 @@ from arrays import few
 from hostile import HOSTILE_ENTRIES, hostile_grid, record_arrays, record_violations
 from sdtree_parts import TREE_METHODS, forest_violations, hostile_tree
 
-#: The grid guides whose tables cover every array an update builds: the sphere CDF (sphere_inv), the per-pair N, M
-#: and CDFs (hemi_inv's, and the bins proposal's with its fallback share), and Expected SARSA's V.
+#: The grid guides whose tables cover every array an update builds: the cells' alias tables (sphere_inv), the
+#: per-pair N, M and alias tables (hemi_inv's, and the bins proposal's with its fallback share), and Expected SARSA's V.
 TABLE_METHODS = ("expected_sarsa-sphere_inv", "expected_sarsa-hemi_inv", "expected_sarsa-hemi_rej_plus",
                  "sarsa-hemi_rej")
 
@@ -30,9 +30,9 @@ COSINE_INTEGRAL_TOLERANCE = 1e-3
 @pytest.mark.parametrize("method", TABLE_METHODS)
 def test_grid_table_updates(method, min_exploration, figures):
     """Grid record: an update from all-zero, 1e30, 1e39, denormal, NaN, ±Inf or negative accumulators gives finite
-    tables (policy > 0 summing to 1, CDFs ending at 1, N > 0, M ≥ ū), counts what it dropped or clamped, and
-    equals the update of the sanitised table (nothing propagates); with the default exploration floor, and with
-    the paper's schedule (ε → 1e-10)."""
+    tables (policy > 0 summing to 1, alias tables with a density > 0 for every bin they draw, N > 0, M ≥ ū),
+    counts what it dropped or clamped, and equals the update of the sanitised table (nothing propagates); with the
+    default exploration floor, and with the paper's schedule (ε → 1e-10)."""
     updates = 0
     for kind, spec in HOSTILE_ENTRIES.items():
         hostile, expected = hostile_grid(method, kind, min_exploration)

@@ -1,0 +1,111 @@
+"""Rows of discrete distributions on the device, sampled by Walker's alias method: one packet read per sample.
+
+A table of ``rows × size`` weights becomes ``rows × size`` slots of four floats, read together (:func:`sample`):
+slot j of a row holds its threshold ``t_j``, its alias ``a_j`` (the bits of a uint32), and the densities of bins j
+and ``a_j``. A sample ``(u, v)`` takes slot ``j = ⌊u·size⌋`` and bin ``k = j if v < t_j else a_j``, and its
+density comes with it. The CPU backend compiles each gather into a load per lane, and the cut points and CDF window
+this replaces took four dependent gathers (cut point, two CDF entries, density) where this takes one.
+
+Densities are exact for the finished table: bin k's probability is ``(t_k + Σ_{j: a_j = k} (1 − t_j))/size``,
+summed in float64 from the float32 thresholds the sampler compares against, times the caller's per-bin ``scale``
+(a bin's solid angle, say). A bin of zero weight (or below :data:`NEGLIGIBLE`) has threshold 0 and is nobody's
+alias: it is never drawn.
+
+Built by Vose's method as a sweep (one lane per row, a loop of at most ``size`` steps): the bins of probability
+below the mean are handed, in order, to the current bin above it, whose excess pays for their slots; when its
+excess runs out, it becomes a small bin itself, aliased to the next large one.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+#: Floats per slot: threshold, alias bits, density of the slot's bin, density of its alias.
+SLOT_FIELDS = 4
+#: Bytes per bin of a table, and of the temporaries of its construction (probabilities, lists, thresholds and
+#: aliases, their float64 sums).
+SLOT_BYTES = 4 * SLOT_FIELDS
+#: Thresholds below this are set to 0: such a bin (probability < 2⁻⁶⁴/size) is never drawn, so that no drawn bin
+#: has a density that underflows float32.
+NEGLIGIBLE = 2.0 ** -64
+BUILD_BYTES = 48
+
+
+def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Float:
+    """The slots of consecutive rows of ``size`` weights (non-negative, a positive sum per row); a bin's density
+    field is its probability times ``scale`` (per bin, or one value)."""
+    rows = dr.width(weight) // size
+    flat = dr.arange(mi.UInt32, rows * size)
+    row_of, k = flat // size, flat % size
+    w = mi.Float64(weight)
+    p = w * size / dr.gather(mi.Float64, dr.block_reduce(dr.ReduceOp.Add, w, size), row_of)   # mean 1 per row
+    large = (p >= 1) | (p == dr.gather(mi.Float64, dr.block_reduce(dr.ReduceOp.Max, p, size), row_of))
+    small_list, small_count = _list(~large, flat, size)
+    large_list, large_count = _list(large, flat, size)
+    threshold = dr.select(large, mi.Float64(1), 0)
+    alias = mi.UInt32(k)
+    dr.eval(p, threshold, alias, small_list, large_list)
+    _sweep(p, threshold, alias, small_list, small_count, large_list, large_count, size)
+
+    t = mi.Float(dr.select(threshold < NEGLIGIBLE, 0, threshold))
+    first = row_of * size
+    probability = mi.Float64(t)
+    dr.scatter_reduce(dr.ReduceOp.Add, probability, 1 - mi.Float64(t), first + alias, alias != k)
+    density = mi.Float(probability / size) * scale
+    slots = dr.zeros(mi.Float, SLOT_FIELDS * rows * size)
+    fields = (t, dr.reinterpret_array(mi.Float, alias), density, dr.gather(mi.Float, density, first + alias))
+    for i, field in enumerate(fields):
+        dr.scatter(slots, field, SLOT_FIELDS * flat + i)
+    dr.eval(slots)
+    return slots
+
+
+def _list(member: mi.Bool, flat: mi.UInt32, size: int) -> tuple[mi.UInt32, mi.UInt32]:
+    """The bins of each row that are ``member``, in order, at the start of the row's stretch of the list; and
+    their number per row."""
+    position = dr.block_prefix_sum(mi.UInt32(member), size, exclusive=True)
+    listed = dr.zeros(mi.UInt32, dr.width(flat))
+    dr.scatter(listed, flat % size, flat // size * size + position, member)
+    return listed, dr.block_reduce(dr.ReduceOp.Add, mi.UInt32(member), size)
+
+
+@dr.syntax
+def _sweep(p, threshold, alias, small_list, small_count, large_list, large_count, size: int) -> None:
+    """Vose's pairing, one lane per row: writes the small bins' thresholds and aliases, and those of the large bins
+    whose excess ran out (the others keep threshold 1)."""
+    first = dr.arange(mi.UInt32, dr.width(small_count)) * size
+    taken, converted = mi.UInt32(0), mi.UInt32(0)        # small bins handed out; large bins turned small
+    current = dr.gather(mi.UInt32, large_list, first)
+    excess = dr.gather(mi.Float64, p, first + current)   # the current large bin's probability not yet in a slot
+    going = mi.Bool(True)
+    while going:
+        turn = (excess < 1) & (converted + 1 < large_count)
+        give = ~turn & (taken < small_count)
+        following = dr.gather(mi.UInt32, large_list, first + converted + 1, turn)
+        dr.scatter(threshold, excess, first + current, turn)
+        dr.scatter(alias, following, first + current, turn)
+        small = dr.gather(mi.UInt32, small_list, first + taken, give)
+        share = dr.gather(mi.Float64, p, first + small, give)
+        dr.scatter(threshold, share, first + small, give)
+        dr.scatter(alias, current, first + small, give)
+        excess = dr.select(turn, dr.gather(mi.Float64, p, first + following, turn) - (1 - excess),
+                           dr.select(give, excess - (1 - share), excess))
+        current = dr.select(turn, following, current)
+        converted += dr.select(turn, 1, 0)
+        taken += dr.select(give, 1, 0)
+        going = turn | give
+
+
+def sample(slots: mi.Float, row: mi.UInt32, size: int, u: mi.Point2f,
+           active: mi.Bool) -> tuple[mi.UInt32, mi.Float]:
+    """A bin of row ``row`` drawn with ``u`` ∈ [0, 1)², and its density field: one packet gather."""
+    j = dr.minimum(mi.UInt32(u.x * size), size - 1)
+    slot = dr.gather(mi.Vector4f, slots, row * size + j, active)
+    own = u.y < slot.x
+    return (dr.select(own, j, dr.reinterpret_array(mi.UInt32, slot.y)), dr.select(own, slot.z, slot.w))
+
+
+def density(slots: mi.Float, row: mi.UInt32, size: int, k: mi.UInt32, active: mi.Bool) -> mi.Float:
+    """The density field of bin ``k`` of row ``row``."""
+    return dr.gather(mi.Float, slots, SLOT_FIELDS * (row * size + k) + 2, active)
