@@ -36,9 +36,11 @@ def command_bench(args) -> None:
     from .backend import set_variant
     from .scenes import find_scene
 
-    schedule, size = args.part == "pass-schedule", args.part == "kernel-size"
-    args.scenes = args.scenes or ",".join(PASS_SCHEDULE_SCENES if schedule else [f"{s}:0.0625" for s in BENCH_SCENES]
-                                          if size else [*(f"{s}:0.25" for s in BENCH_SCENES), *BENCH_EXTRA_SCENES])
+    schedule, size, profile = args.part == "pass-schedule", args.part == "kernel-size", args.part == "profile"
+    args.scenes = args.scenes or ",".join(
+        PASS_SCHEDULE_SCENES if schedule else [f"{s}:0.0625" for s in BENCH_SCENES] if size
+        else [f"{s}:0.25" for s in BENCH_SCENES] if profile
+        else [*(f"{s}:0.25" for s in BENCH_SCENES), *BENCH_EXTRA_SCENES])
     args.methods = args.methods or ",".join(PASS_SCHEDULE_METHODS if schedule else BENCH_METHODS)
     args.out = args.out or ("results/pass_schedule" if schedule else "results/bench")
     scenes = parse_scene_list(args.scenes)
@@ -61,6 +63,17 @@ def command_bench(args) -> None:
         write_table(frame, out / "kernel_instructions", "Machine instructions of each method's render kernel (the "
                     "largest module compiled in its first passes; see guiding/kernel_size.py)", device,
                     f"python -m guiding bench --part kernel-size --scenes {args.scenes} --methods {args.methods}")
+        print(frame.to_string(index=False))
+        return
+    if profile:
+        from .cpu_profile import profile_table
+
+        frame = profile_table(scenes, [m for m in args.methods.split(",") if m], args.passes)
+        write_table(frame, out / "profile_cpu", f"CPU time per spp by code, sampled by Linux perf ({args.passes} "
+                    "passes of 8 spp after 3 warm-up passes, one Dr.Jit thread; `jit_kernels`: the compiled path "
+                    "loop, `embree`: ray traversal; see guiding/cpu_profile.py)", device,
+                    f"python -m guiding bench --part profile --scenes {args.scenes} --methods {args.methods} "
+                    f"--passes {args.passes}")
         print(frame.to_string(index=False))
         return
     if schedule:

@@ -1,11 +1,13 @@
 """The size of each method's render kernel in machine instructions (CPU backend): ``bench --part kernel-size``.
 
 Why it is measured: on the CPU, Dr.Jit compiles the path loop into one kernel that runs the loop's whole body for
-every packet of 8 lanes, and the parts a lane does not need are masked, not skipped (only a symbolic ``if`` whose
-condition no lane of the packet meets is skipped). Each gather becomes a loop over the lanes (a branch and a scalar
-load per lane: LLVM scalarises gathers on this AMD EPYC), so a table read costs tens of instructions. The time per
-ray then follows the instructions the body holds more than the arithmetic it does, and the instruction count of a
-method's kernel against ``brdf``'s is a noise-free account of where the guided bounce's time goes.
+every packet of lanes (8 with AVX2, 16 with AVX-512), and the parts a lane does not need are masked, not skipped
+(only a symbolic ``if`` whose condition no lane of the packet meets is skipped). Where the CPU's gather instruction
+is slow (AVX2 on AMD Zen 3), LLVM turns each gather into a loop over the lanes (a branch and a scalar load per
+lane), so a table read costs tens of instructions; with AVX-512 (Zen 4) it emits ``vpgatherdd``, counted in
+``hardware_gathers``. The time per ray follows the instructions the body holds more than the arithmetic it does,
+and the instruction count of a method's kernel against ``brdf``'s is a noise-free account of where the guided
+bounce's time goes.
 
 How: each method runs in a fresh process with an empty kernel cache, so that every kernel is compiled, with Dr.Jit
 logging at its trace level (which prints the disassembly of each compiled kernel). A kernel is a module of functions
@@ -28,21 +30,23 @@ import pandas as pd
 PASSES = 3
 _FUNCTION = re.compile(r"jit_llvm_disasm\(\): =+ (\d+) =+")
 _INSTRUCTION = re.compile(r"jit_llvm_disasm\(\): 0x[0-9a-f]+\s")
+_GATHER = re.compile(r"jit_llvm_disasm\(\): 0x[0-9a-f]+\s+v(p)?gather")
 
 
-def parse_disassembly(log: str) -> list[list[int]]:
-    """The instruction counts of the functions of each kernel module in a Dr.Jit trace log (function 0 opens a
-    module)."""
-    modules: list[list[int]] = []
+def parse_disassembly(log: str) -> list[list[tuple[int, int]]]:
+    """(instructions, hardware gathers) of the functions of each kernel module in a Dr.Jit trace log (function 0
+    opens a module)."""
+    modules: list[list[list[int]]] = []
     for line in log.splitlines():
         function = _FUNCTION.search(line)
         if function:
             if int(function.group(1)) == 0 or not modules:
                 modules.append([])
-            modules[-1].append(0)
+            modules[-1].append([0, 0])
         elif _INSTRUCTION.search(line) and modules:
-            modules[-1][-1] += 1
-    return modules
+            modules[-1][-1][0] += 1
+            modules[-1][-1][1] += bool(_GATHER.search(line))
+    return [[(count, gathers) for count, gathers in module] for module in modules]
 
 
 def count_instructions(method: str, scene: str, scale: float) -> dict:
@@ -55,8 +59,10 @@ def count_instructions(method: str, scene: str, scale: float) -> dict:
     modules = parse_disassembly(run.stdout)     # Dr.Jit writes its log to stdout
     if not modules:
         raise RuntimeError(f"kernel-size run of '{method}' logged no disassembly (is the backend LLVM?)")
-    largest = max(modules, key=sum)
-    return {"method": method, "instructions": sum(largest), "functions": len(largest), "largest_function": max(largest)}
+    largest = max(modules, key=lambda module: sum(count for count, _ in module))
+    return {"method": method, "instructions": sum(count for count, _ in largest), "functions": len(largest),
+            "largest_function": max(count for count, _ in largest),
+            "hardware_gathers": sum(gathers for _, gathers in largest)}
 
 
 def kernel_table(scenes: list[tuple[str, float]], methods: list[str]) -> pd.DataFrame:

@@ -1,8 +1,11 @@
-"""The benchmark's cost breakdown and throughput limit on a tiny run (one timed pass, a 16x16 image)."""
+"""The benchmark's cost breakdown and throughput limit on a tiny run (one timed pass, a 16x16 image), and the
+parsing of its kernel-size and profile parts."""
 
 import pytest
 
 from guiding.bench import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, benchmark, target_table)
+from guiding.cpu_profile import parse_report, profile_table
+from guiding.errors import GuidingError
 from guiding.kernel_size import kernel_table, parse_disassembly
 from guiding.methods import make_guide
 from guiding.scenes import load_scene
@@ -51,11 +54,42 @@ def test_nothing_to_guide_comes_from_the_scenes_bsdfs(scene_name, guided):
 
 def test_disassembly_log_is_split_into_kernel_modules():
     log = "\n".join(["jit_var_new(): r1", "jit_llvm_disasm(): ========== 0 ==========",
-                     "jit_llvm_disasm(): 0x00000000   push\trbp", "jit_llvm_disasm(): 0x00000001   ret",
+                     "jit_llvm_disasm(): 0x00000000   push\trbp",
+                     "jit_llvm_disasm(): 0x00000001   vpgatherdd\tzmm2 {k2}, zmmword ptr [rax + 4*zmm0]",
+                     "jit_llvm_disasm(): 0x00000002   ret",
                      "jit_llvm_disasm(): ========== 1 ==========", "jit_llvm_disasm(): 0x00000000   ret",
                      "jit_llvm_disasm(): ...", "jit_llvm_disasm(): ========== 0 ==========",
                      "jit_llvm_disasm(): 0x00000000   ret"])
-    assert parse_disassembly(log) == [[2, 1], [1]]
+    assert parse_disassembly(log) == [[(3, 1), (1, 0)], [(1, 0)]]
+
+
+PERF_REPORT = """\
+# Samples: 10K of event 'cpu-clock'
+# Overhead        Period  Shared Object
+# ........  ............  ...........................................
+#
+    65.27%    1686500000  [JIT] tid 5751
+    27.95%     722250000  libembree3.so
+     4.08%     105500000  libpython3.11.so.1.0
+     0.95%      24500000  libdrjit-core.so
+     0.73%      19000000  [kernel.kallsyms]
+     0.37%       9500000  _drjit_ext.cpython-311-x86_64-linux-gnu.so
+     0.01%        250000  libgfortran-040039e1-0352e75f.so.5.0.0
+"""
+
+
+def test_perf_report_is_grouped_by_code():
+    """``bench --part profile`` groups perf's shared objects: Dr.Jit's compiled kernels, Embree, the Dr.Jit runtime
+    (its Python bindings included), Python, the operating system, and the rest; periods are nanoseconds."""
+    seconds = parse_report(PERF_REPORT)
+    assert seconds == pytest.approx({"jit_kernels": 1.6865, "embree": 0.72225, "llvm_compile": 0.0,
+                                     "drjit_runtime": 0.034, "python": 0.1055, "os": 0.019, "other": 0.00025})
+
+
+def test_profile_without_perf_is_one_line(monkeypatch):
+    monkeypatch.setattr("shutil.which", lambda name: None)
+    with pytest.raises(GuidingError, match="needs Linux perf on the PATH"):
+        profile_table([("cornell-box", 0.0625)], ["ours"], passes=1)
 
 
 def test_a_guided_kernel_holds_more_instructions_than_brdfs():
