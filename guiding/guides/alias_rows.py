@@ -3,8 +3,9 @@
 A table of ``rows × size`` weights becomes ``rows × size`` slots of four floats, read together (:func:`sample`):
 slot j of a row holds its threshold ``t_j``, its alias ``a_j`` (the bits of a uint32), and the densities of bins j
 and ``a_j``. A sample ``(u, v)`` takes slot ``j = ⌊u·size⌋`` and bin ``k = j if v < t_j else a_j``, and its
-density comes with it. The CPU backend compiles each gather into a load per lane, and the cut points and CDF window
-this replaces took four dependent gathers (cut point, two CDF entries, density) where this takes one.
+density comes with it. Every read is a gather (on CPUs without fast gathers, LLVM compiles it into a load per
+lane), and the cut points and CDF window this replaces took four dependent gathers (cut point, two CDF entries,
+density) where this takes one.
 
 Densities are exact for the finished table: bin k's probability is ``(t_k + Σ_{j: a_j = k} (1 − t_j))/size``,
 summed in float64 from the float32 thresholds the sampler compares against, times the caller's per-bin ``scale``
