@@ -66,12 +66,13 @@ def command_bench(args) -> None:
         print(frame.to_string(index=False))
         return
     if profile:
-        from .cpu_profile import profile_table
+        from .cpu_profile import PASS_SPP, WARMUP_PASSES, profile_table
 
         frame = profile_table(scenes, [m for m in args.methods.split(",") if m], args.passes)
         write_table(frame, out / "profile_cpu", f"CPU time per spp by code, sampled by Linux perf ({args.passes} "
-                    "passes of 8 spp after 3 warm-up passes, one Dr.Jit thread; `jit_kernels`: the compiled path "
-                    "loop, `embree`: ray traversal; see guiding/cpu_profile.py)", device,
+                    f"passes of {PASS_SPP} spp after {WARMUP_PASSES} warm-up passes, llvm_ad_rgb on one Dr.Jit "
+                    "thread; `jit_kernels`: the compiled path loop, `embree`: ray traversal; see "
+                    "guiding/cpu_profile.py)", device,
                     f"python -m guiding bench --part profile --scenes {args.scenes} --methods {args.methods} "
                     f"--passes {args.passes}")
         print(frame.to_string(index=False))

@@ -7,19 +7,20 @@ recording; ``perf`` labels this JIT code ``[JIT] tid …``), Embree's ray traver
 the Dr.Jit runtime and the operating system. Embree's share is the same for every method on a scene (the same number
 of rays, about), so a guided method's excess lies in the kernel's own instructions.
 
-How: each method runs in a child process with one Dr.Jit thread; it renders ``WARMUP_PASSES`` passes (compilation
-and the guide's first updates), then waits while ``perf`` attaches to it, then renders the profiled passes (their
-updates included, as a pass pays them) and exits.
+How: each method runs in a child process with one Dr.Jit thread under ``perf record``, its events disabled; it
+renders ``WARMUP_PASSES`` passes (compilation and the guide's first updates), then perf's events are enabled
+(through its control pipe) for the profiled passes (their updates included, as a pass pays them) and disabled
+before the child exits.
 """
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import pandas as pd
@@ -54,25 +55,58 @@ def parse_report(text: str) -> dict[str, float]:
     return seconds
 
 
-def profile_method(method: str, scene: str, scale: float, passes: int) -> dict:
-    """The CPU seconds per spp of ``passes`` passes of ``method``, by group, sampled in a child process."""
+def profile_method(method: str, scene: str, scale: float, passes: int, timeout: float = 3600) -> dict:
+    """The CPU seconds per spp of ``passes`` passes of ``method``, by group: the child runs under ``perf record``
+    with its events disabled, and they are enabled (through perf's control pipe) for the profiled passes only."""
     with tempfile.TemporaryDirectory() as folder:
-        data = Path(folder) / "perf.data"
-        child = subprocess.Popen([sys.executable, "-m", "guiding.cpu_profile", method, scene, str(scale), str(passes)],
-                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        if child.stdout.readline().strip() != "ready":
-            raise RuntimeError(f"profile run of '{method}' failed: {child.communicate()[1].strip().splitlines()[-1:]}")
-        perf = subprocess.Popen(["perf", "record", "-q", "-e", "cpu-clock", "-o", str(data), "-p", str(child.pid)],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        time.sleep(0.5)     # perf attaches before the profiled passes start
-        child.communicate("go\n")
-        _, perf_errors = perf.communicate()
+        folder = Path(folder)
+        data, log = folder / "perf.data", folder / "child.log"
+        control_read, control_write = os.pipe()
+        ack_read, ack_write = os.pipe()
+        with open(log, "w") as child_log:
+            child = subprocess.Popen(["perf", "record", "-q", "-e", "cpu-clock", "-D", "-1", "-o", str(data),
+                                      "--control", f"fd:{control_read},{ack_write}", "--",
+                                      sys.executable, "-m", "guiding.cpu_profile", method, scene, str(scale),
+                                      str(passes)], pass_fds=(control_read, ack_write),
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=child_log, text=True)
+        os.close(control_read)
+        os.close(ack_write)
+        try:
+            with open(control_write, "w") as commands, open(ack_read) as acks:
+                for command, after in (("enable", "ready"), ("disable", "done")):     # around the profiled passes
+                    if not _wait_for(child, after):
+                        break
+                    commands.write(f"{command}\n")
+                    commands.flush()
+                    acks.readline()
+                    child.stdin.write("go\n")
+                    child.stdin.flush()
+                child.wait(timeout=timeout)     # perf stops at the end of its control pipe: close it after
+        except (OSError, subprocess.TimeoutExpired):
+            child.kill()
+            child.wait()
         if child.returncode != 0 or not data.exists():
-            raise RuntimeError(f"profile run of '{method}' failed: {perf_errors.strip().splitlines()[-1:]}")
+            raise GuidingError(f"profile run of '{method}' on {scene} failed: {_last_line(log.read_text())}")
         report = subprocess.run(["perf", "report", "-i", str(data), "--sort", "dso", "--stdio", "--show-total-period"],
-                                capture_output=True, text=True, check=True).stdout
+                                capture_output=True, text=True)
+        if report.returncode != 0:
+            raise GuidingError(f"perf report of '{method}' on {scene} failed: {_last_line(report.stderr)}")
     spp = passes * PASS_SPP
-    return {"method": method, **{f"{group}_ms_per_spp": 1e3 * s / spp for group, s in parse_report(report).items()}}
+    seconds = parse_report(report.stdout)
+    return {"method": method, **{f"{group}_ms_per_spp": 1e3 * s / spp for group, s in seconds.items()}}
+
+
+def _wait_for(child: subprocess.Popen, word: str) -> bool:
+    """Read the child's stdout up to a line ``word`` (other lines are its logs); False at its end."""
+    for line in child.stdout:
+        if line.strip() == word:
+            return True
+    return False
+
+
+def _last_line(text: str) -> str:
+    lines = [line.strip() for line in text.strip().splitlines() if line.strip()]
+    return lines[-1] if lines else "no message"
 
 
 def profile_table(scenes: list[tuple[str, float]], methods: list[str], passes: int) -> pd.DataFrame:
@@ -97,7 +131,8 @@ def profile_table(scenes: list[tuple[str, float]], methods: list[str], passes: i
 
 
 def _render_when_told(method: str, scene_name: str, scale: float, passes: int) -> None:
-    """The child process: warm-up passes, ``ready`` on stdout, then the profiled passes once a line comes on stdin."""
+    """The child process: warm-up passes, ``ready`` on stdout, the profiled passes once a line comes on stdin, then
+    ``done``, and it exits at the next line (so that perf leaves the interpreter's shutdown out)."""
     import drjit as dr
     import mitsuba as mi
 
@@ -116,6 +151,9 @@ def _render_when_told(method: str, scene_name: str, scale: float, passes: int) -
     sys.stdin.readline()
     for seed in range(WARMUP_PASSES, WARMUP_PASSES + passes):
         driver.run(seed, PASS_SPP)
+    dr.sync_thread()
+    print("done", flush=True)
+    sys.stdin.readline()
 
 
 if __name__ == "__main__":

@@ -2,10 +2,10 @@
 
 Why it is measured: on the CPU, Dr.Jit compiles the path loop into one kernel that runs the loop's whole body for
 every packet of lanes (8 with AVX2, 16 with AVX-512), and the parts a lane does not need are masked, not skipped
-(only a symbolic ``if`` whose condition no lane of the packet meets is skipped). Where the CPU's gather instruction
-is slow (AVX2 on AMD Zen 3), LLVM turns each gather into a loop over the lanes (a branch and a scalar load per
-lane), so a table read costs tens of instructions; with AVX-512 (Zen 4) it emits ``vpgatherdd``, counted in
-``hardware_gathers``. The time per ray follows the instructions the body holds more than the arithmetic it does,
+(only a symbolic ``if`` whose condition no lane of the packet meets is skipped). Where LLVM deems the CPU's gather
+instruction slow (AVX2 on AMD Zen 3), it turns each gather into a loop over the lanes (a branch and a scalar load
+per lane), so a table read costs tens of instructions; elsewhere (AVX-512 on Zen 4, say) it emits ``vpgatherdd``,
+counted in ``hardware_gathers``. The time per ray follows the instructions the body holds more than the arithmetic it does,
 and the instruction count of a method's kernel against ``brdf``'s is a noise-free account of where the guided
 bounce's time goes.
 
@@ -30,7 +30,7 @@ import pandas as pd
 PASSES = 3
 _FUNCTION = re.compile(r"jit_llvm_disasm\(\): =+ (\d+) =+")
 _INSTRUCTION = re.compile(r"jit_llvm_disasm\(\): 0x[0-9a-f]+\s")
-_GATHER = re.compile(r"jit_llvm_disasm\(\): 0x[0-9a-f]+\s+v(p)?gather")
+_GATHER = re.compile(r"jit_llvm_disasm\(\): 0x[0-9a-f]+\s+v(p)?gather[dq]")
 
 
 def parse_disassembly(log: str) -> list[list[tuple[int, int]]]:

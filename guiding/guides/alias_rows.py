@@ -24,17 +24,19 @@ import mitsuba as mi
 
 #: Floats per slot: threshold, alias bits, density of the slot's bin, density of its alias.
 SLOT_FIELDS = 4
-#: Bytes per bin of a table, and of the temporaries of its construction (probabilities, lists, thresholds and
-#: aliases, their float64 sums).
+#: Bytes per bin of a table.
 SLOT_BYTES = 4 * SLOT_FIELDS
+#: Bytes per bin of the temporaries of a table's construction (probabilities, lists, thresholds and aliases, their
+#: float64 sums).
+BUILD_BYTES = 48
 #: Thresholds below this are set to 0: such a bin (probability < 2⁻⁶⁴/size) is never drawn, so that no drawn bin
 #: has a density that underflows float32.
 NEGLIGIBLE = 2.0 ** -64
-BUILD_BYTES = 48
 
 
 def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Float:
-    """The slots of consecutive rows of ``size`` weights (non-negative, a positive sum per row); a bin's density
+    """The slots of consecutive rows of ``size`` weights (finite, non-negative, a positive sum per row: the callers'
+    policies are at least ε/B and their weights sanitised; a row of zeros would give NaN thresholds); a bin's density
     field is its probability times ``scale`` (per bin, or one value)."""
     rows = dr.width(weight) // size
     flat = dr.arange(mi.UInt32, rows * size)
