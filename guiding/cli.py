@@ -133,7 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "code, JIT kernels against Embree and the rest (Linux perf; results/bench/profile_cpu)")
     bench.add_argument("--scenes", help="comma-separated NAME:SCALE list (default: cost: the four shared scenes at 1/4 "
                        "resolution, glossy-box and mirror-box, the scenes with nothing to guide; pass-schedule: those "
-                       "of config/paper.yaml's equal-time experiment)")
+                       "of config/paper.yaml's equal-time experiment; kernel-size: the four at 1/16; profile: the "
+                       "four at 1/4)")
     bench.add_argument("--passes", type=_positive_int, default=8, help="timed passes per integrator (default 8)")
     bench.add_argument("--methods", help="methods timed against brdf (comma-separated; default: cost: every kind, "
                        "pass-schedule: brdf, ours, ours-plus, sdtree)")

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from .bench_child import child_failure, method_driver
 from .errors import GuidingError
 
 WARMUP_PASSES = 3
@@ -86,11 +87,11 @@ def profile_method(method: str, scene: str, scale: float, passes: int, timeout: 
             child.kill()
             child.wait()
         if child.returncode != 0 or not data.exists():
-            raise GuidingError(f"profile run of '{method}' on {scene} failed: {_last_line(log.read_text())}")
+            raise child_failure(f"profile run of '{method}' on {scene}", log.read_text())
         report = subprocess.run(["perf", "report", "-i", str(data), "--sort", "dso", "--stdio", "--show-total-period"],
                                 capture_output=True, text=True)
         if report.returncode != 0:
-            raise GuidingError(f"perf report of '{method}' on {scene} failed: {_last_line(report.stderr)}")
+            raise child_failure(f"perf report of '{method}' on {scene}", report.stderr)
     spp = passes * PASS_SPP
     seconds = parse_report(report.stdout)
     return {"method": method, **{f"{group}_ms_per_spp": 1e3 * s / spp for group, s in seconds.items()}}
@@ -103,10 +104,6 @@ def _wait_for(child: subprocess.Popen, word: str) -> bool:
             return True
     return False
 
-
-def _last_line(text: str) -> str:
-    lines = [line.strip() for line in text.strip().splitlines() if line.strip()]
-    return lines[-1] if lines else "no message"
 
 
 def profile_table(scenes: list[tuple[str, float]], methods: list[str], passes: int) -> pd.DataFrame:
@@ -134,17 +131,8 @@ def _render_when_told(method: str, scene_name: str, scale: float, passes: int) -
     """The child process: warm-up passes, ``ready`` on stdout, the profiled passes once a line comes on stdin, then
     ``done``, and it exits at the next line (so that perf leaves the interpreter's shutdown out)."""
     import drjit as dr
-    import mitsuba as mi
 
-    mi.set_variant("llvm_ad_rgb")
-    dr.set_thread_count(1)
-    from .driver import PassDriver
-    from .integrator import GuidedPathIntegrator
-    from .methods import make_guide
-    from .scenes import load_scene
-
-    driver = PassDriver(load_scene(scene_name, scale=scale), GuidedPathIntegrator(guide=make_guide(method)))
-    driver.prepare()
+    driver = method_driver(method, scene_name, scale, threads=1)
     for seed in range(WARMUP_PASSES):
         driver.run(seed, PASS_SPP)
     print("ready", flush=True)

@@ -9,10 +9,10 @@ counted in ``hardware_gathers``. The time per ray follows the instructions the b
 and the instruction count of a method's kernel against ``brdf``'s is a noise-free account of where the guided
 bounce's time goes.
 
-How: each method runs in a fresh process with an empty kernel cache, so that every kernel is compiled, with Dr.Jit
-logging at its trace level (which prints the disassembly of each compiled kernel). A kernel is a module of functions
-(the path loop and the BSDF/emitter calls it makes); the largest module compiled in the first passes, the trained
-guide's path loop, is counted.
+How: each method runs in a fresh process on one Dr.Jit thread (the kernels hold some 20 instructions more with two)
+and an empty kernel cache, so that every kernel is compiled, with Dr.Jit logging at its trace level (which prints
+the disassembly of each compiled kernel). A kernel is a module of functions (the path loop and the BSDF/emitter
+calls it makes); the largest module compiled in the first passes, the trained guide's path loop, is counted.
 """
 
 from __future__ import annotations
@@ -24,6 +24,9 @@ import sys
 import tempfile
 
 import pandas as pd
+
+from .bench_child import child_failure, method_driver
+from .errors import GuidingError
 
 #: Passes each method renders (1 spp each) while its kernels are compiled: the first may be untrained (grid guides
 #: sample the BSDF until their first update), the later ones use the trained guide.
@@ -55,10 +58,10 @@ def count_instructions(method: str, scene: str, scale: float) -> dict:
         run = subprocess.run([sys.executable, "-m", "guiding.kernel_size", method, scene, str(scale)],
                              env={**os.environ, "DRJIT_CACHE_DIR": cache}, capture_output=True, text=True)
     if run.returncode != 0:
-        raise RuntimeError(f"kernel-size run of '{method}' failed: {run.stderr.strip().splitlines()[-1:]}")
+        raise child_failure(f"kernel-size run of '{method}' on {scene}", run.stderr)
     modules = parse_disassembly(run.stdout)     # Dr.Jit writes its log to stdout
     if not modules:
-        raise RuntimeError(f"kernel-size run of '{method}' logged no disassembly (is the backend LLVM?)")
+        raise GuidingError(f"kernel-size run of '{method}' on {scene} logged no disassembly (is the backend LLVM?)")
     largest = max(modules, key=lambda module: sum(count for count, _ in module))
     return {"method": method, "instructions": sum(count for count, _ in largest), "functions": len(largest),
             "largest_function": max(count for count, _ in largest),
@@ -80,16 +83,8 @@ def kernel_table(scenes: list[tuple[str, float]], methods: list[str]) -> pd.Data
 def _compile_and_log(method: str, scene_name: str, scale: float) -> None:
     """The child process: render ``PASSES`` 1-spp passes of ``method`` with Dr.Jit's trace log (on stdout)."""
     import drjit as dr
-    import mitsuba as mi
 
-    mi.set_variant("llvm_ad_rgb")
-    from .driver import PassDriver
-    from .integrator import GuidedPathIntegrator
-    from .methods import make_guide
-    from .scenes import load_scene
-
-    driver = PassDriver(load_scene(scene_name, scale=scale), GuidedPathIntegrator(guide=make_guide(method)))
-    driver.prepare()
+    driver = method_driver(method, scene_name, scale, threads=1)    # the kernel's code varies with the thread count
     dr.set_log_level(dr.LogLevel.Trace)
     for seed in range(PASSES):
         driver.run(seed, 1)

@@ -7,7 +7,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from guiding.guides.alias_rows import SLOT_FIELDS, build, density, sample
+from guiding.guides.alias_rows import SLOT_FIELDS, build, density, drawn_probability, sample
 
 
 def _rows(size: int, rows: int, rng) -> np.ndarray:
@@ -27,17 +27,6 @@ def _fields(slots: mi.Float, size: int):
     return table[..., 0], table[..., 1].view(np.uint32), table[..., 2], table[..., 3]
 
 
-def _drawn_probability(threshold, alias, size):
-    """Each bin's probability under the sampler: its own slot below the threshold, the slots aliasing it above."""
-    probability = threshold.astype(np.float64)
-    rows = np.repeat(np.arange(threshold.shape[0]), size)
-    np.add.at(probability, (rows, alias.ravel()), 1 - threshold.astype(np.float64).ravel())
-    np.subtract.at(probability, (rows, np.tile(np.arange(size), threshold.shape[0])),
-                   np.where(alias.ravel() == np.tile(np.arange(size), threshold.shape[0]),
-                            1 - threshold.astype(np.float64).ravel(), 0))
-    return probability / size
-
-
 @pytest.mark.parametrize("size", [2, 3, 7, 288, 512])   # a record has B = 2·D² ≥ 2 bins
 def test_alias_table_draws_each_bin_with_its_density(size):
     rng = np.random.default_rng(size)
@@ -46,7 +35,7 @@ def test_alias_table_draws_each_bin_with_its_density(size):
     slots = build(mi.Float(weight.ravel()), size, mi.Float(scale.ravel()))
     threshold, alias, own, aliased = _fields(slots, size)
     assert ((threshold >= 0) & (threshold <= 1)).all() and (alias < size).all()
-    drawn = _drawn_probability(threshold, alias, size)
+    drawn = drawn_probability(slots, size)
     # The density field is the drawn probability times the scale, and the alias's field is its bin's.
     assert np.allclose(own, drawn * scale, rtol=1e-6, atol=1e-37)
     assert (own[drawn > 0] > 0).all()

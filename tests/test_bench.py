@@ -4,6 +4,7 @@ parsing of its kernel-size and profile parts."""
 import pytest
 
 from guiding.bench import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, benchmark, target_table)
+from guiding.bench_child import child_failure
 from guiding.cpu_profile import parse_report, profile_table
 from guiding.errors import GuidingError
 from guiding.kernel_size import kernel_table, parse_disassembly
@@ -84,6 +85,14 @@ def test_perf_report_is_grouped_by_code():
     seconds = parse_report(PERF_REPORT)
     assert seconds == pytest.approx({"jit_kernels": 1.6865, "embree": 0.72225, "llvm_compile": 0.0,
                                      "drjit_runtime": 0.034, "python": 0.1055, "os": 0.019, "other": 0.00025})
+
+
+def test_a_failed_child_is_told_in_one_line():
+    """A benchmark child's failure reaches the user as its last line (the exception), not its whole log."""
+    log = "Traceback (most recent call last):\n  File \"x.py\", line 1\nValueError: bad scale\n\n"
+    error = child_failure("profile run of 'ours' on cornell-box", log)
+    assert str(error) == "profile run of 'ours' on cornell-box failed: ValueError: bad scale"
+    assert str(child_failure("kernel-size run", "")) == "kernel-size run failed: no message"
 
 
 def test_profile_without_perf_is_one_line(monkeypatch):

@@ -112,3 +112,18 @@ def sample(slots: mi.Float, row: mi.UInt32, size: int, u: mi.Point2f,
 def density(slots: mi.Float, row: mi.UInt32, size: int, k: mi.UInt32, active: mi.Bool) -> mi.Float:
     """The density field of bin ``k`` of row ``row``."""
     return dr.gather(mi.Float, slots, SLOT_FIELDS * (row * size + k) + 2, active)
+
+
+def drawn_probability(slots, size: int):
+    """On the host, for checks: each bin's probability under :func:`sample` (rows × ``size``, float64), from the
+    thresholds and aliases alone: its own slot below the threshold, and the slots that alias it above theirs."""
+    import numpy as np
+
+    table = np.asarray(slots, dtype=np.float32).reshape(-1, size, SLOT_FIELDS)
+    threshold = table[..., 0].astype(np.float64)
+    alias = table[..., 1].view(np.uint32).astype(np.int64)
+    rows = np.repeat(np.arange(table.shape[0]), size)
+    others = (alias != np.arange(size)).ravel()
+    probability = threshold.copy()
+    np.add.at(probability, (rows[others], alias.ravel()[others]), 1 - threshold.ravel()[others])
+    return probability / size

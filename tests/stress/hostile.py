@@ -13,7 +13,7 @@ import mitsuba as mi
 import numpy as np
 
 from guiding.directions import NormalBins, SphereBins
-from guiding.guides.alias_rows import SLOT_FIELDS
+from guiding.guides.alias_rows import SLOT_FIELDS, drawn_probability
 from guiding.guides.grid import GridGuide
 from guiding.guides.grid_record import Q_LIMIT
 from guiding.methods import grid_parameters
@@ -73,7 +73,8 @@ def record_arrays(record) -> dict:
 def record_violations(record) -> list[str]:
     """What is wrong with a record's tables after an update: anything non-finite, a policy entry that is not a
     positive normal float or a cell whose policy does not sum to 1, an alias table with a threshold outside [0, 1],
-    an alias outside its row or density 0 for a bin it draws, a memo with N ≤ 0 or a bound M below the mean
+    an alias outside its row, rows that do not draw with total probability 1, density 0 for a bin it draws, an alias
+    density that is not its bin's, or (sphere_inv) a density other than the drawn probability per steradian, a memo with N ≤ 0 or a bound M below the mean
     ū = N/2π of P·cos, or Q outside [0, Q_LIMIT]."""
     B = record.bins.count
     tables = record_arrays(record)
@@ -98,8 +99,15 @@ def record_violations(record) -> list[str]:
         threshold, alias, density = slots[..., 0], slots[..., 1].view(np.uint32), slots[..., 2]
         if not ((threshold >= 0) & (threshold <= 1) & (alias < B)).all():
             problems.append(f"{name} has thresholds outside [0, 1] or aliases outside the row")
-        if not ((density >= 0).all() and (density[threshold > 0] > 0).all()):
+        drawn = drawn_probability(slots, B)
+        if not ((density >= 0).all() and (density[drawn > 0] > 0).all()):
             problems.append(f"{name} has negative densities, or density 0 for a bin it draws")
+        if not (np.abs(drawn.sum(axis=1) - 1) <= B * EPS32).all():
+            problems.append(f"{name} rows draw with total probability {drawn.sum(axis=1)[:3]} instead of 1")
+        if not np.array_equal(slots[..., 3], np.take_along_axis(density, alias.astype(np.int64), axis=1)):
+            problems.append(f"{name} slots carry an alias density other than the alias bin's")
+        if name == "cell_alias" and not np.allclose(density * record.bins.solid_angle, drawn, rtol=1e-5, atol=0):
+            problems.append(f"{name} densities are not the probabilities sphere_inv draws with")
     if record.needs_pairs:
         visited = np.array(record.visited) != 0
         norm, bound, value = tables["norm"][visited], tables["bound"][visited], tables["value"][visited]
