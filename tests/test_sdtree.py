@@ -403,6 +403,24 @@ def test_stree_splits_at_midpoints_cycling_axes():
     assert bounded.n_leaves == 128 and max(bounded.depth) == 7
 
 
+def test_stree_locate_from_the_start_table_finds_every_leaf():
+    """The start table skips the first 3·START_LEVELS levels of the descent: on a tree with leaves above, at and far
+    below that depth, every position finds the leaf a full descent from the root finds."""
+    from guiding import guide_state
+    from guiding.guides.stree import START_LEVELS
+
+    rng = np.random.default_rng(7)
+    stree = STree([-1, 0, 2], [3, 1, 2.5])
+    stree.refine([3000.0], threshold=50)       # 6 levels, then some leaves far deeper than 15 and others not at all
+    stree.refine(np.where(rng.random(stree.n_leaves) < 0.1, rng.lognormal(13, 1, stree.n_leaves), 0), threshold=50)
+    assert min(stree.depth) < 3 * START_LEVELS < max(stree.depth)
+    state = guide_state._stree_state(stree)
+    points = rng.uniform(stree.lo[0], stree.hi[0], (4000, 3))
+    found = stree_locate(stree.to_device(), mi.Point3f(*[mi.Float(points[:, i]) for i in range(3)])).numpy()
+    expected = [guide_state.cell_of_point({**state, "locator": "stree"}, point) for point in points]
+    assert found.tolist() == expected
+
+
 def test_doubling_schedule():
     assert doubling_schedule(8)[:4] == [(0, 8), (8, 24), (24, 56), (56, 120)]
     # With a budget of 64 spp, the third iteration (32 spp) could not be doubled: it runs to the end (40 spp).

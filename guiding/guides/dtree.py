@@ -364,6 +364,6 @@ class DeviceForest:
     def sample_or_pdf_dir(self, tree, sample, d, draw, active=True):
         """In one descent of tree ``tree``: lanes with ``draw`` draw a world direction with the 2D ``sample``, the
         others look world direction ``d`` up; returns (the direction drawn, meaningless where not ``draw``; the
-        solid-angle density of the lane's direction)."""
-        _, uv, pdf = self.descend(tree, dr.select(draw, mi.Point2f(sample), dir_to_uv(d)), draw, active)
-        return uv_to_dir(uv), pdf * INV_4PI
+        solid-angle density of the lane's direction; the slot of the leaf it lies in)."""
+        slot, uv, pdf = self.descend(tree, dr.select(draw, mi.Point2f(sample), dir_to_uv(d)), draw, active)
+        return uv_to_dir(uv), pdf * INV_4PI, slot

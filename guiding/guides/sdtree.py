@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -35,6 +36,17 @@ from .grid_cells import GridCells
 from .parameters import PAPER_SPP_UNIT, QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
 from .stree import STree, iteration_length, stree_locate
 from .vertex_log import NO_RECORD, VertexLog, walk_backward
+
+
+@dataclass
+class TreeVertex:
+    """What :meth:`_TreeGuide.locate` hands to ``sample`` and ``record`` at a vertex: its D-tree, and the recording
+    leaf slot of the direction ``sample`` took, where the descent that drew it (or found its density) already found
+    the leaf, that is, where the sampling and the recording D-trees are the same (the quadtree grid's); NO_RECORD or
+    None elsewhere (``record`` descends the recording tree there)."""
+
+    tree: mi.UInt32
+    slot: mi.UInt32 = None
 
 
 def _capacity(n: int) -> int:
@@ -113,7 +125,8 @@ class _TreeGuide(Guide):
     def locate(self, si, bsdf, active):
         """The vertex's D-tree (its S-tree leaf, or grid cell), in the lanes sampled from a D-tree or recorded (a
         BSDF it guides, or one with a smooth lobe); found once: the S-tree's descent took a tenth of a path's time."""
-        return self._locate(si.p, self.guides(bsdf, active) | (active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)))
+        return TreeVertex(self._locate(si.p, self.guides(bsdf, active)
+                                       | (active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth))))
 
     @dr.syntax
     def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active, vertex=None):
@@ -123,15 +136,20 @@ class _TreeGuide(Guide):
         s1 = sampler.next_1d(active)
         s2 = sampler.next_2d(active)
         guidable = self.guides(bsdf, active)
+        tree = None if vertex is None else vertex.tree
         if guidable:
-            bs, weight = self._mixture_sample(si, bsdf, bsdf_ctx, s1, s2, guidable, vertex)
+            bs, weight, slot = self._mixture_sample(si, bsdf, bsdf_ctx, s1, s2, guidable, tree)
         else:
             bs, weight = bsdf.sample(bsdf_ctx, si, s1, s2, active & ~guidable)
+            slot = mi.UInt32(NO_RECORD)
+        if dr.hint(vertex is not None and self._recording is self._sampling, mode="scalar"):
+            vertex.slot = slot
         return bs, weight
 
     def _mixture_sample(self, si, bsdf, bsdf_ctx, s1, s2, active, tree=None):
         """One sample of the mixture of BSDF sampling and the vertex's D-tree ``tree`` (None: located here) for the
-        samples ``s1``, ``s2`` (BSDF sampling alone where the D-tree holds no energy)."""
+        samples ``s1``, ``s2`` (BSDF sampling alone where the D-tree holds no energy): the sample, its weight, and
+        the leaf slot of its direction in the sampling D-tree (NO_RECORD where the tree was not descended)."""
         tree = self._locate(si.p, active) if tree is None else tree
         guided = self.guided_mask(tree, bsdf, active)
         frac = dr.select(guided, self.bsdf_fraction, 1.0)
@@ -145,7 +163,7 @@ class _TreeGuide(Guide):
         # BSDF's direction in the others. The density of a direction the tree drew is the one its descent found:
         # looking the (rounded) direction up again could land in a neighbouring leaf of side ~1e-6 with a very
         # different density.
-        d_tree, p_tree = self._sampling.sample_or_pdf_dir(tree, s2, bsdf_dir, use_tree, guided)
+        d_tree, p_tree, slot = self._sampling.sample_or_pdf_dir(tree, s2, bsdf_dir, use_tree, guided)
         wo_world = dr.select(use_tree, d_tree, bsdf_dir)
         wo = si.to_local(wo_world)
         value, p_bsdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
@@ -158,16 +176,30 @@ class _TreeGuide(Guide):
         bs.sampled_type = dr.select(use_tree, mi.UInt32(+mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
         bs.sampled_component = dr.select(use_tree, mi.UInt32(0), bs.sampled_component)
         weight = dr.select(delta, bsdf_weight / self.bsdf_fraction, dr.select(guided, mix_weight, bsdf_weight))
-        return bs, weight
+        return bs, weight, dr.select(guided, slot, NO_RECORD)
 
     def record(self, state, si, emitted, bs, weight, continues, active, vertex=None):
         # The direction sampled here was traced: record it (delta directions carry no density).
         traced = (mi.Bool(active) & continues & si.is_valid() & (bs.pdf > 0)
                   & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
-        tree = self._locate(si.p, traced) if vertex is None else vertex
-        slot = self._recording.slot_of_dir(tree, si.to_world(bs.wo), traced)
+        tree = self._locate(si.p, traced) if vertex is None else vertex.tree
+        slot = self._recording_slot(tree, si.to_world(bs.wo), None if vertex is None else vertex.slot, traced)
         return self._log.append(state, emitted, weight, continues, dr.select(traced, slot, NO_RECORD), active,
                                 pdf=bs.pdf)
+
+    @dr.syntax
+    def _recording_slot(self, tree, direction, known, traced) -> mi.UInt32:
+        """The recording leaf slot of world ``direction`` in D-tree ``tree``: ``known`` (what ``sample`` found), and
+        a descent of the recording tree in the ``traced`` lanes where it found none. A branch: packets whose every
+        slot ``sample`` found skip the descent."""
+        if dr.hint(known is None, mode="scalar"):
+            slot = self._recording.slot_of_dir(tree, direction, traced)
+        else:
+            slot = mi.UInt32(known)
+            missing = traced & (known == NO_RECORD)
+            if missing:
+                slot = dr.select(missing, self._recording.slot_of_dir(tree, direction, missing), slot)
+        return slot
 
     def finish_paths(self, state) -> None:
         walk_backward(state, self._splat)

@@ -4,7 +4,9 @@ doubling schedule of its training iterations.
 **Layout** (:class:`STree`): ``child`` (index of the first of two adjacent children, -1 for a leaf), ``axis`` and
 ``split`` (midpoint) per node, ``tree`` (the D-tree of a leaf). A leaf splits at its midpoint along its axis; its
 children split along the next axis (x, y, z, x, …), so the root splits along x and a node's axis is its depth mod 3.
-On the device (:meth:`STree.to_device`), one array of two words per node.
+On the device (:meth:`STree.to_device`), one array of two words per node, and a table of where a descent starts:
+the nodes of depth ``3·g`` are the cells of a ``2^g`` grid over the root cube, so one read of that grid's table at
+a position skips the tree's first ``3·g`` levels (:data:`START_LEVELS`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,10 @@ from .dtree import padded
 
 #: The flag of a leaf in the device layout's first word (the rest of the word is the leaf's D-tree index).
 LEAF = 0x80000000
+#: g: :func:`stree_locate` starts its descent at the node of depth ``3·g`` (or the leaf above it) of the position's
+#: cell in a ``2^g`` grid over the root cube (32³ cells, a table of 128 KiB), read in one gather; a leaf deeper than
+#: ``3·g`` levels is found by descending from there.
+START_LEVELS = 5
 
 
 class STree:
@@ -92,15 +98,38 @@ class STree:
         first = np.array([LEAF | t if c < 0 else c for c, t in zip(self.child, self.tree)], dtype=np.uint32)
         split = np.array([self.split_value(n) for n in range(self.n_nodes)], dtype=np.float32)
         nodes = np.stack([first, split.view(np.uint32)], axis=1).ravel()
-        arrays = {"nodes": mi.UInt32(padded(nodes))}
+        cells = 1 << START_LEVELS
+        lo, size = self.lo[0], self.hi[0][0] - self.lo[0][0]
+        arrays = {"nodes": mi.UInt32(padded(nodes)), "start": mi.UInt32(self._start_nodes(cells)),
+                  "lo": dr.opaque(mi.Point3f, [float(x) for x in lo]),
+                  "cells_per_unit": dr.opaque(mi.Float, float(cells / size))}
         dr.eval(*arrays.values())
         return arrays
+
+    def _start_nodes(self, cells: int) -> np.ndarray:
+        """For each cell ``(z·n + y)·n + x`` of an ``n = cells`` grid over the root cube: the node that contains it
+        at depth ``3·log2(n)``, or the leaf above that depth (found with the cell's centre)."""
+        index = np.arange(cells ** 3)
+        lo, size = self.lo[0], self.hi[0][0] - self.lo[0][0]
+        centre = lo + (np.stack([index % cells, index // cells % cells, index // cells ** 2], axis=1) + 0.5) * (size / cells)
+        child, axis = np.asarray(self.child), np.asarray(self.axis)
+        split = np.array([self.split_value(n) for n in range(self.n_nodes)])
+        node = np.zeros(len(index), dtype=np.int64)
+        for _ in range(3 * (cells.bit_length() - 1)):
+            above = centre[index, axis[node]] >= split[node]
+            node = np.where(child[node] >= 0, child[node] + above, node)
+        return node.astype(np.uint32)
 
 
 @dr.syntax
 def stree_locate(arrays: dict, p, active=True):
-    """D-tree index of the S-tree leaf containing ``p`` (device); 0 in inactive lanes."""
-    node = mi.UInt32(0)
+    """D-tree index of the S-tree leaf containing ``p`` (device); 0 in inactive lanes. The descent starts at the node
+    of ``p``'s cell in the start table (:data:`START_LEVELS`): a leaf, or an inner node of depth ``3·g``, which splits
+    along x. (Near a cell's face, float rounding may start it in the neighbouring cell: such a point finds a leaf
+    next to its own, the same one wherever it is looked up.)"""
+    cells = 1 << START_LEVELS
+    c = dr.clip(mi.Vector3i(dr.floor((p - arrays["lo"]) * arrays["cells_per_unit"])), 0, cells - 1)
+    node = dr.gather(mi.UInt32, arrays["start"], mi.UInt32((c.z * cells + c.y) * cells + c.x), active)
     axis = mi.UInt32(0)
     first = mi.UInt32(0)
     go = mi.Bool(active)
