@@ -74,8 +74,9 @@ def command_bench(args) -> None:
         frame = profile_table(scenes, [m for m in args.methods.split(",") if m], args.passes)
         write_table(frame, out / "profile_cpu", f"CPU time per spp by code, sampled by Linux perf ({args.passes} "
                     f"passes of {PASS_SPP} spp after {WARMUP_PASSES} warm-up passes, llvm_ad_rgb on one Dr.Jit "
-                    "thread; `jit_kernels`: the compiled path loop, `embree`: ray traversal; see "
-                    "guiding/cpu_profile.py)", device,
+                    "thread; `jit_kernels`: the compiled path loop, split into `jit_table_access` (samples at a "
+                    "gather, load or store through a computed address, or the instruction after one) and `jit_other`; "
+                    "`embree`: ray traversal; see guiding/cpu_profile.py)", device,
                     f"python -m guiding bench --part profile --scenes {args.scenes} --methods {args.methods} "
                     f"--passes {args.passes}")
         print(frame.to_string(index=False))

@@ -5,7 +5,7 @@ import pytest
 
 from guiding.bench import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, benchmark, target_table)
 from guiding.bench_child import child_failure
-from guiding.cpu_profile import parse_report, profile_table
+from guiding.cpu_profile import parse_report, profile_table, table_access_share
 from guiding.errors import GuidingError
 from guiding.kernel_size import kernel_table, parse_disassembly
 from guiding.methods import make_guide
@@ -85,6 +85,26 @@ def test_perf_report_is_grouped_by_code():
     seconds = parse_report(PERF_REPORT)
     assert seconds == pytest.approx({"jit_kernels": 1.6865, "embree": 0.72225, "llvm_compile": 0.0,
                                      "drjit_runtime": 0.034, "python": 0.1055, "os": 0.019, "other": 0.00025})
+
+
+OBJDUMP = """\
+    1000:\t62 d2 7d 49 92 24 88 \tvgatherdps (%rax,%zmm1,4),%zmm4{%k1}
+    1007:\t62 b1 44 48 5f cf    \tvmaxps %zmm23,%zmm7,%zmm1
+    100d:\t62 f1 7c 48 28 44 24 \tvmovaps 0x700(%rsp),%zmm8
+    1014:\t1c 
+    1015:\t62 f1 7c 48 59 c1    \tvmulps %zmm1,%zmm0,%zmm0
+    101b:\tc5 79 29 28          \tvmovapd %xmm13,(%rax)
+    101f:\t4c 8d a4 24 00 2d 00 \tlea    (%rax,%rbx,4),%r12
+    1026:\t62 f1 7c 48 58 c1    \tvaddps %zmm1,%zmm0,%zmm0
+"""
+
+
+def test_kernel_samples_at_table_accesses():
+    """A sample counts as a table access at a gather, a load or store through a computed address, or the instruction
+    after one (where a timer sample waiting on it lands); not at stack spills, ``lea`` or arithmetic."""
+    samples = {0x1000: 1, 0x1007: 10, 0x100d: 100, 0x1015: 1000, 0x101b: 10000, 0x101f: 100000, 0x1026: 1000000,
+               0x1014: 7}      # not an instruction's address: not counted
+    assert table_access_share(samples, OBJDUMP) == (1 + 10 + 10000 + 100000, 1111111)
 
 
 def test_a_failed_child_is_told_in_one_line():
