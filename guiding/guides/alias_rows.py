@@ -49,17 +49,16 @@ def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Floa
     threshold = dr.select(large, mi.Float64(1), 0)
     alias = mi.UInt32(k)
     dr.eval(p, threshold, alias, small_list, large_list)
-    _sweep(p, threshold, alias, small_list, small_count, large_list, large_count, size)
+    received = _sweep(p, threshold, alias, small_list, small_count, large_list, large_count, size)
 
-    t = mi.Float(dr.select(threshold < NEGLIGIBLE, 0, threshold))
+    t = _as_sampled(threshold)
     first = row_of * size
-    probability = mi.Float64(t)
-    dr.scatter_reduce(dr.ReduceOp.Add, probability, 1 - mi.Float64(t), first + alias, alias != k)
+    probability = mi.Float64(t) + received
     density = mi.Float(probability / size) * scale
-    slots = dr.zeros(mi.Float, SLOT_FIELDS * rows * size)
-    fields = (t, dr.reinterpret_array(mi.Float, alias), density, dr.gather(mi.Float, density, first + alias))
-    for i, field in enumerate(fields):
-        dr.scatter(slots, field, SLOT_FIELDS * flat + i)
+    # Every slot is written, whole, by one packet scatter: no zeroing pass, one pass over the table.
+    slots = dr.empty(mi.Float, SLOT_FIELDS * rows * size)
+    dr.scatter(slots, mi.Vector4f(t, dr.reinterpret_array(mi.Float, alias), density,
+                                  dr.gather(mi.Float, density, first + alias)), flat)
     dr.eval(slots)
     return slots
 
@@ -73,14 +72,23 @@ def _list(member: mi.Bool, flat: mi.UInt32, size: int) -> tuple[mi.UInt32, mi.UI
     return listed, dr.block_reduce(dr.ReduceOp.Add, mi.UInt32(member), size)
 
 
+def _as_sampled(threshold):
+    """A threshold as :func:`sample` compares against it: float32, and 0 below :data:`NEGLIGIBLE`."""
+    return mi.Float(dr.select(threshold < NEGLIGIBLE, 0, threshold))
+
+
 @dr.syntax
-def _sweep(p, threshold, alias, small_list, small_count, large_list, large_count, size: int) -> None:
+def _sweep(p, threshold, alias, small_list, small_count, large_list, large_count, size: int) -> mi.Float64:
     """Vose's pairing, one lane per row: writes the small bins' thresholds and aliases, and those of the large bins
-    whose excess ran out (the others keep threshold 1)."""
+    whose excess ran out (the others keep threshold 1). Returns what each bin receives from the slots that alias it,
+    ``Σ (1 − t_j)`` with ``t_j`` as sampled (:func:`_as_sampled`), summed as the sweep hands the slots out (a large
+    bin is the alias of the slots handed to it while it is the current one), not by an atomic add per slot."""
+    received_by = dr.zeros(mi.Float64, dr.width(p))
     first = dr.arange(mi.UInt32, dr.width(small_count)) * size
     taken, converted = mi.UInt32(0), mi.UInt32(0)        # small bins handed out; large bins turned small
     current = dr.gather(mi.UInt32, large_list, first)
     excess = dr.gather(mi.Float64, p, first + current)   # the current large bin's probability not yet in a slot
+    received = mi.Float64(0)                             # what the current large bin's aliasing slots add to it
     going = mi.Bool(True)
     while going:
         turn = (excess < 1) & (converted + 1 < large_count)
@@ -88,16 +96,23 @@ def _sweep(p, threshold, alias, small_list, small_count, large_list, large_count
         following = dr.gather(mi.UInt32, large_list, first + converted + 1, turn)
         dr.scatter(threshold, excess, first + current, turn)
         dr.scatter(alias, following, first + current, turn)
+        dr.scatter(received_by, received, first + current, turn)
         small = dr.gather(mi.UInt32, small_list, first + taken, give)
         share = dr.gather(mi.Float64, p, first + small, give)
         dr.scatter(threshold, share, first + small, give)
         dr.scatter(alias, current, first + small, give)
+        received = dr.select(turn, 1 - mi.Float64(_as_sampled(excess)),
+                             dr.select(give, received + (1 - mi.Float64(_as_sampled(share))), received))
         excess = dr.select(turn, dr.gather(mi.Float64, p, first + following, turn) - (1 - excess),
                            dr.select(give, excess - (1 - share), excess))
         current = dr.select(turn, following, current)
         converted += dr.select(turn, 1, 0)
         taken += dr.select(give, 1, 0)
         going = turn | give
+        # Written at every step, so that nothing of the loop's state is read after it (that would trace the loop
+        # into a second kernel): the current bin's running sum, final once the sweep moves on or ends.
+        dr.scatter(received_by, received, first + current)
+    return received_by
 
 
 def sample(slots: mi.Float, row: mi.UInt32, size: int, u: mi.Point2f,
