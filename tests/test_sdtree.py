@@ -522,6 +522,29 @@ def test_trained_dtrees_point_at_the_light(cornell, method):
     assert np.mean(near) > 0.35 and np.min(near) > 0.067, near
 
 
+def test_quadtree_grid_records_the_leaf_its_descent_found(cornell):
+    """The quadtree grid's sampling and recording D-trees are one, so a guided vertex records the leaf its mixture's
+    descent found: the same pass recorded through a lookup of the recording tree (the SD-tree's way) fills the same
+    leaves with the same energy (but for directions within rounding of a leaf's edge)."""
+    import copy
+
+    from guiding.testing import train
+
+    guide = train(cornell, QuadtreeGridGuide(spatial_resolution=4), spp=16)
+    integrator = GuidedPathIntegrator(guide=guide)
+    sensor = cornell.sensors()[0]
+    recorded = []
+    for recording in (guide._sampling, copy.copy(guide._sampling)):     # the same tree, but not the same object
+        guide._recording = recording
+        guide._reset_accumulators()
+        integrator.render_pass(cornell, sensor, seed=5, spp=4)
+        recorded.append((np.array(guide._energy_acc), np.array(guide._count_acc)))
+    (handed, counts), (looked_up, looked_up_counts) = recorded
+    assert counts.sum() > 1000 and np.array_equal(counts, looked_up_counts)
+    assert np.count_nonzero(handed != looked_up) <= 1e-3 * np.count_nonzero(handed)
+    assert handed.sum() == pytest.approx(looked_up.sum(), rel=1e-4)
+
+
 def test_progressive_render_statistics_and_one_kernel(cornell):
     from guiding.render import Budget, render
 
