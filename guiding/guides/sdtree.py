@@ -124,7 +124,7 @@ class _TreeGuide(Guide):
 
     def locate(self, si, bsdf, active):
         """The vertex's D-tree (its S-tree leaf, or grid cell), in the lanes sampled from a D-tree or recorded (a
-        BSDF it guides, or one with a smooth lobe); found once: the S-tree's descent took a tenth of a path's time."""
+        BSDF it guides, or one with a smooth lobe), found once per vertex (:class:`TreeVertex`)."""
         return TreeVertex(self._locate(si.p, self.guides(bsdf, active)
                                        | (active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth))))
 
