@@ -8,8 +8,8 @@ lane), and the cut points and CDF window this replaces took four dependent gathe
 density) where this takes one.
 
 Densities are exact for the finished table: bin k's probability is ``(t_k + Σ_{j: a_j = k} (1 − t_j))/size``,
-summed in float64 from the float32 thresholds the sampler compares against, times the caller's per-bin ``scale``
-(a bin's solid angle, say). A bin of zero weight (or below :data:`NEGLIGIBLE`) has threshold 0 and is nobody's
+summed in float64 (by the sweep, as it hands the slots out) from the float32 thresholds the sampler compares
+against, times the caller's per-bin ``scale`` (a bin's solid angle, say). A bin of zero weight (or below :data:`NEGLIGIBLE`) has threshold 0 and is nobody's
 alias: it is never drawn.
 
 Built by Vose's method as a sweep (one lane per row, a loop of at most ``size`` steps): the bins of probability
