@@ -238,7 +238,8 @@ def pass_schedule_table(scenes: list[tuple[str, float]], methods: list[str], spp
     """Per scene and method: the counted seconds (render and update, compilation excluded) of a render of ``spp``
     spp with fixed passes of 8 spp and with growing passes (:mod:`guiding.pass_schedule`), the two renders
     alternating, ``rounds`` times (medians); their ratio, and each mode's cost per spp over ``brdf``'s in the same
-    mode (what decides an equal-time comparison)."""
+    mode (what decides an equal-time comparison). The fixed passes' cost splits into the kernels' execution, the
+    guide's updates and the rest of each pass (tracing the loop in Python, launching, synchronising)."""
     from .integrator import GuidedPathIntegrator
     from .methods import make_guide
     from .render import Budget, render
@@ -252,23 +253,35 @@ def pass_schedule_table(scenes: list[tuple[str, float]], methods: list[str], spp
               f"rounds of {spp} spp with fixed and with growing passes", file=sys.stderr, flush=True)
         scene = load_scene(name, scale)
         for method in methods:
-            seconds, passes = {False: [], True: []}, {}
+            seconds, passes, parts = {False: [], True: []}, {}, []
             for index in range(rounds):
                 for growing in (False, True):
                     result = render(scene, GuidedPathIntegrator(props, guide=make_guide(method)),
                                     Budget(spp=spp, growing_passes=growing), seed=index, progress=False)
                     seconds[growing].append(result.counted_seconds())
                     passes[growing] = len(result.passes)
+                    if not growing:
+                        parts.append(_pass_parts(result.passes))
             fixed, growing = float(np.median(seconds[False])), float(np.median(seconds[True]))
+            split = {f"{part}_ms_per_spp_fixed": 1e3 * float(np.median([p[part] for p in parts])) / spp
+                     for part in ("kernel", "update", "rest")}
             rows.append({"scene": name, "resolution": _resolution(scene), "method": method,
                          "passes_fixed": passes[False], "passes_growing": passes[True],
                          "ms_per_spp_fixed": 1e3 * fixed / spp, "ms_per_spp_growing": 1e3 * growing / spp,
-                         "speed_up": fixed / growing})
+                         "speed_up": fixed / growing, **split})
     frame = pd.DataFrame(rows)
     brdf = frame[frame["method"] == "brdf"].set_index("scene")
     for mode in ("fixed", "growing"):
         frame[f"ratio_to_brdf_{mode}"] = frame[f"ms_per_spp_{mode}"] / frame["scene"].map(brdf[f"ms_per_spp_{mode}"])
     return frame
+
+
+def _pass_parts(passes) -> dict[str, float]:
+    """The counted seconds of a render's passes (:meth:`PassStats.counted_seconds`) in three parts: the kernels'
+    execution, the guide's updates, and the rest of the passes (compilation left out)."""
+    kernel = sum(p.kernel_seconds for p in passes)
+    return {"kernel": kernel, "update": sum(p.update_seconds for p in passes),
+            "rest": sum(max(p.seconds - p.compile_seconds, 0.0) for p in passes) - kernel}
 
 
 #: Issue targets: (what, method, column, bound, applies on the GPU only / CPU only / both).

@@ -85,7 +85,8 @@ def command_bench(args) -> None:
         frame = pass_schedule_table(scenes, [m for m in args.methods.split(",") if m])
         write_table(frame, out / f"pass_schedule_{tag}", "Fixed against growing passes: counted seconds of 512-spp "
                     "renders (render + update, compilation excluded; medians of 2 alternating rounds)", device,
-                    f"python -m guiding bench --part pass-schedule --scenes {args.scenes} --methods {args.methods}")
+                    f"python -m guiding bench --part pass-schedule --scenes {args.scenes} --methods {args.methods}"
+                    + (f" --threads {args.threads}" if args.threads else ""))
         print(frame.to_string(index=False))
         return
     frame, breakdown = benchmark(scenes, [m for m in args.methods.split(",") if m], passes=args.passes,

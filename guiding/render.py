@@ -122,6 +122,7 @@ class PassStats:
     hit_rate: float          # fraction of paths with a non-zero contribution
     guide: dict = field(default_factory=dict)   # the guide's statistics of its update after this pass
     iteration_done: bool = False                # the update ended one of the guide's iterations
+    kernel_seconds: float = 0.0                 # execution time of the pass's kernels (part of ``seconds``)
 
     @property
     def counted_seconds(self) -> float:
@@ -478,7 +479,7 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
             passes.append(PassStats(index, spp, spp_total, outcome.seconds, outcome.update_seconds,
                                     outcome.kernels.compile_seconds, outcome.kernels.launched,
                                     outcome.kernels.compiled, outcome.hit_rate, outcome.update.stats,
-                                    outcome.update.iteration_done))
+                                    outcome.update.iteration_done, outcome.kernels.execution_seconds))
             if index >= budget.exclude_passes:
                 counted += passes[-1].counted_seconds
             display.show(spp_total, counted)

@@ -107,6 +107,21 @@ def test_kernel_samples_at_table_accesses():
     assert table_access_share(samples, OBJDUMP) == (1 + 10 + 10000 + 100000, 1111111)
 
 
+def test_fixed_passes_split_into_kernels_updates_and_the_rest():
+    """`bench --part pass-schedule` splits a render's counted seconds (compilation left out) into the kernels'
+    execution, the updates, and the rest of the passes; the three add up to the counted seconds."""
+    from guiding.bench import _pass_parts
+    from guiding.render import PassStats
+
+    passes = [PassStats(0, 8, 8, seconds=0.05, update_seconds=0.02, compile_seconds=0.01, kernels_launched=2,
+                        kernels_compiled=1, hit_rate=0.5, kernel_seconds=0.03),
+              PassStats(1, 8, 16, seconds=0.04, update_seconds=0.015, compile_seconds=0.004, kernels_launched=2,
+                        kernels_compiled=0, hit_rate=0.5, kernel_seconds=0.03)]
+    parts = _pass_parts(passes)
+    assert parts == pytest.approx({"kernel": 0.06, "update": 0.035, "rest": 0.016})
+    assert sum(parts.values()) == pytest.approx(sum(p.counted_seconds for p in passes))
+
+
 def test_a_failed_child_is_told_in_one_line():
     """A benchmark child's failure reaches the user as its last line (the exception), not its whole log."""
     log = "Traceback (most recent call last):\n  File \"x.py\", line 1\nValueError: bad scale\n\n"
