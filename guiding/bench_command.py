@@ -54,6 +54,10 @@ def command_bench(args) -> None:
     for method in filter(None, args.methods.split(",")):
         check_method(method)
     variant = set_variant(args.variant, args.threads)
+    # The options that change what the renders run on, as given (the parts that run children on one CPU thread
+    # take neither).
+    backend_options = ((f" --variant {args.variant}" if args.variant != "auto" else "")
+                       + (f" --threads {args.threads}" if args.threads else ""))
     out = prepare_output_dir(args.out)
     from .bench import benchmark, pass_schedule_table, target_table, write_table
 
@@ -86,15 +90,13 @@ def command_bench(args) -> None:
         write_table(frame, out / f"pass_schedule_{tag}", "Fixed against growing passes: counted seconds of 512-spp "
                     "renders (render + update, compilation excluded; medians of 2 alternating rounds)", device,
                     f"python -m guiding bench --part pass-schedule --scenes {args.scenes} --methods {args.methods}"
-                    + (f" --threads {args.threads}" if args.threads else ""))
+                    + backend_options)
         print(frame.to_string(index=False))
         return
     frame, breakdown = benchmark(scenes, [m for m in args.methods.split(",") if m], passes=args.passes,
                                  breakdown=not args.no_breakdown)
     command = (f"python -m guiding bench --scenes {args.scenes} --methods {args.methods} --passes {args.passes}"
-               + (f" --variant {args.variant}" if args.variant != "auto" else "")
-               + (f" --threads {args.threads}" if args.threads else "")
-               + (" --no-breakdown" if args.no_breakdown else ""))
+               + backend_options + (" --no-breakdown" if args.no_breakdown else ""))
     write_table(frame, out / f"benchmark_{tag}", "Cost per spp of every method vs `brdf` and Mitsuba `path` (same "
                 f"run, {args.passes} interleaved passes of 8 spp after 2 warm-up passes, max depth 16; `trace-only`: "
                 "the throughput limit, `share_of_trace_limit`: rays/s as a fraction of its)", device,

@@ -90,6 +90,8 @@ def _kernel_split(data: Path, regions: Path) -> float:
     if shutil.which("objdump") is None:
         return float("nan")
     script = subprocess.run(["perf", "script", "-i", str(data), "-F", "ip"], capture_output=True, text=True)
+    if script.returncode != 0:
+        raise child_failure("perf script", script.stderr)
     samples: dict[int, int] = {}
     for line in script.stdout.split():
         address = int(line, 16)

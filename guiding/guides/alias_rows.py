@@ -3,9 +3,7 @@
 A table of ``rows × size`` weights becomes ``rows × size`` slots of four floats, read together (:func:`sample`):
 slot j of a row holds its threshold ``t_j``, its alias ``a_j`` (the bits of a uint32), and the densities of bins j
 and ``a_j``. A sample ``(u, v)`` takes slot ``j = ⌊u·size⌋`` and bin ``k = j if v < t_j else a_j``, and its
-density comes with it. Every read is a gather (on CPUs without fast gathers, LLVM compiles it into a load per
-lane), and the cut points and CDF window this replaces took four dependent gathers (cut point, two CDF entries,
-density) where this takes one.
+density comes with it: one gather per sample, none dependent on another.
 
 Densities are exact for the finished table: bin k's probability is ``(t_k + Σ_{j: a_j = k} (1 − t_j))/size``,
 summed in float64 (by the sweep, as it hands the slots out) from the float32 thresholds the sampler compares
@@ -96,7 +94,6 @@ def _sweep(p, threshold, alias, small_list, small_count, large_list, large_count
         following = dr.gather(mi.UInt32, large_list, first + converted + 1, turn)
         dr.scatter(threshold, excess, first + current, turn)
         dr.scatter(alias, following, first + current, turn)
-        dr.scatter(received_by, received, first + current, turn)
         small = dr.gather(mi.UInt32, small_list, first + taken, give)
         share = dr.gather(mi.Float64, p, first + small, give)
         dr.scatter(threshold, share, first + small, give)
@@ -109,8 +106,9 @@ def _sweep(p, threshold, alias, small_list, small_count, large_list, large_count
         converted += dr.select(turn, 1, 0)
         taken += dr.select(give, 1, 0)
         going = turn | give
-        # Written at every step, so that nothing of the loop's state is read after it (that would trace the loop
-        # into a second kernel): the current bin's running sum, final once the sweep moves on or ends.
+        # The current bin's running sum, written at every step: final when the sweep moves on from the bin (a turn
+        # adds nothing to it first) or ends, and nothing of the loop's state is read after it (that would trace the
+        # loop into a second kernel).
         dr.scatter(received_by, received, first + current)
     return received_by
 

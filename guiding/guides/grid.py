@@ -49,7 +49,7 @@ from . import alias_rows
 from .grid_record import IN_BIN_PROPOSALS, PairMemo, RadianceRecord, table_needs
 from .parameters import (PROFILE_BSDF_PATHS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
                          with_overrides)
-from .vertex_log import NO_RECORD, VertexLog, walk_backward
+from .vertex_log import NO_RECORD, VertexLog, known_or_found, walk_backward
 
 
 @dataclass
@@ -498,18 +498,11 @@ class GridGuide(Guide):
         state.previous = self._record_td(state.previous, si, emitted, bs, weight, continues, leaves, active, index)
         return state
 
-    @dr.syntax
     def _record_index(self, si, bs, index, needed) -> mi.UInt32:
         """The record index of the direction sampled at ``si``, in the lanes ``needed``: the sampler's (``index``),
         looked up where it gave none (None; NO_RECORD at a vertex whose BSDF it does not guide, where a segment that
-        arrives still reads Q). A branch: packets whose every index the sampler gave skip the lookup."""
-        if dr.hint(index is None, mode="scalar"):
-            index = self.record_table.index(si.p, si.to_world(bs.wo))
-        else:
-            missing = needed & (index == NO_RECORD)
-            if missing:
-                index = dr.select(missing, self.record_table.index(si.p, si.to_world(bs.wo)), index)
-        return index
+        arrives still reads Q)."""
+        return known_or_found(index, needed, lambda lanes: self.record_table.index(si.p, si.to_world(bs.wo)))
 
     @dr.syntax
     def _record_td(self, previous, si, emitted, bs, weight, continues, leaves, active, index=None) -> mi.UInt32:

@@ -35,7 +35,7 @@ from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceFo
 from .grid_cells import GridCells
 from .parameters import PAPER_SPP_UNIT, QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
 from .stree import STree, iteration_length, stree_locate
-from .vertex_log import NO_RECORD, VertexLog, walk_backward
+from .vertex_log import NO_RECORD, VertexLog, known_or_found, walk_backward
 
 
 @dataclass
@@ -183,23 +183,12 @@ class _TreeGuide(Guide):
         traced = (mi.Bool(active) & continues & si.is_valid() & (bs.pdf > 0)
                   & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
         tree = self._locate(si.p, traced) if vertex is None else vertex.tree
-        slot = self._recording_slot(tree, si.to_world(bs.wo), None if vertex is None else vertex.slot, traced)
+        # The recording leaf: the one the mixture's descent found where the trees are one, a descent of the
+        # recording tree elsewhere.
+        slot = known_or_found(None if vertex is None else vertex.slot, traced,
+                              lambda lanes: self._recording.slot_of_dir(tree, si.to_world(bs.wo), lanes))
         return self._log.append(state, emitted, weight, continues, dr.select(traced, slot, NO_RECORD), active,
                                 pdf=bs.pdf)
-
-    @dr.syntax
-    def _recording_slot(self, tree, direction, known, traced) -> mi.UInt32:
-        """The recording leaf slot of world ``direction`` in D-tree ``tree``: ``known`` (what ``sample`` found), and
-        a descent of the recording tree in the ``traced`` lanes where it found none. A branch: packets whose every
-        slot ``sample`` found skip the descent."""
-        if dr.hint(known is None, mode="scalar"):
-            slot = self._recording.slot_of_dir(tree, direction, traced)
-        else:
-            slot = mi.UInt32(known)
-            missing = traced & (known == NO_RECORD)
-            if missing:
-                slot = dr.select(missing, self._recording.slot_of_dir(tree, direction, missing), slot)
-        return slot
 
     def finish_paths(self, state) -> None:
         walk_backward(state, self._splat)

@@ -96,24 +96,26 @@ class STree:
         ``LEAF | D-tree index`` for a leaf) and the bits of ``split`` (float32), read with one packet gather per level
         of the descent; a node's axis follows from its depth."""
         first = np.array([LEAF | t if c < 0 else c for c, t in zip(self.child, self.tree)], dtype=np.uint32)
-        split = np.array([self.split_value(n) for n in range(self.n_nodes)], dtype=np.float32)
-        nodes = np.stack([first, split.view(np.uint32)], axis=1).ravel()
+        lo, hi, axis = np.asarray(self.lo), np.asarray(self.hi), np.asarray(self.axis)
+        nodes = np.arange(self.n_nodes)
+        split = 0.5 * (lo[nodes, axis] + hi[nodes, axis])          # split_value of every node
+        words = np.stack([first, split.astype(np.float32).view(np.uint32)], axis=1).ravel()
         cells = 1 << START_LEVELS
-        lo, size = self.lo[0], self.hi[0][0] - self.lo[0][0]
-        arrays = {"nodes": mi.UInt32(padded(nodes)), "start": mi.UInt32(self._start_nodes(cells)),
-                  "lo": dr.opaque(mi.Point3f, [float(x) for x in lo]),
+        size = hi[0, 0] - lo[0, 0]
+        arrays = {"nodes": mi.UInt32(padded(words)), "start": mi.UInt32(self._start_nodes(cells, split)),
+                  "lo": dr.opaque(mi.Point3f, [float(x) for x in lo[0]]),
                   "cells_per_unit": dr.opaque(mi.Float, float(cells / size))}
         dr.eval(*arrays.values())
         return arrays
 
-    def _start_nodes(self, cells: int) -> np.ndarray:
+    def _start_nodes(self, cells: int, split: np.ndarray) -> np.ndarray:
         """For each cell ``(z·n + y)·n + x`` of an ``n = cells`` grid over the root cube: the node that contains it
-        at depth ``3·log2(n)``, or the leaf above that depth (found with the cell's centre)."""
+        at depth ``3·log2(n)``, or the leaf above that depth (found with the cell's centre; ``split``: each node's
+        split value)."""
         index = np.arange(cells ** 3)
         lo, size = self.lo[0], self.hi[0][0] - self.lo[0][0]
         centre = lo + (np.stack([index % cells, index // cells % cells, index // cells ** 2], axis=1) + 0.5) * (size / cells)
         child, axis = np.asarray(self.child), np.asarray(self.axis)
-        split = np.array([self.split_value(n) for n in range(self.n_nodes)])
         node = np.zeros(len(index), dtype=np.int64)
         for _ in range(3 * (cells.bit_length() - 1)):
             above = centre[index, axis[node]] >= split[node]

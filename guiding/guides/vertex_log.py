@@ -21,6 +21,9 @@ Russian roulette, 0 where the path ends), ``target`` (UInt32: where the guide re
 accumulator index of its own; :data:`NO_RECORD` for none) and, if asked for, ``pdf`` (the density of the sampled
 direction). The path's loop state (:meth:`VertexLog.new_paths`) carries the buffer and the number of vertices
 logged.
+
+:func:`known_or_found` is how a guide finds where a vertex's estimate goes (this log's ``target``, or a SARSA
+record index) when its sampler may have handed it over.
 """
 
 from __future__ import annotations
@@ -33,6 +36,21 @@ import mitsuba as mi
 
 #: An accumulator index that names none: the ``target`` of a vertex whose estimate is recorded nowhere.
 NO_RECORD = 0xFFFFFFFF
+
+
+@dr.syntax
+def known_or_found(known: mi.UInt32 | None, needed: mi.Bool, find: Callable[[mi.Bool], mi.UInt32]) -> mi.UInt32:
+    """Where a vertex's estimate goes: ``known`` (what sampling handed over), and ``find(lanes)`` in the ``needed``
+    lanes where it is :data:`NO_RECORD` (everywhere when ``known`` is None). A branch: packets whose every needed
+    index was handed over skip ``find``."""
+    if dr.hint(known is None, mode="scalar"):
+        index = find(needed)
+    else:
+        index = mi.UInt32(known)
+        missing = needed & (known == NO_RECORD)
+        if missing:
+            index = dr.select(missing, find(missing), index)
+    return index
 
 _TYPES: dict = {}
 
