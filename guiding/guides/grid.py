@@ -485,7 +485,7 @@ class GridGuide(Guide):
     def new_paths(self, size: int, max_depth: int):
         if self.rule == "mc":
             self._mc_log = VertexLog(max_depth)
-            return self._mc_log.new_paths()
+            return self._mc_log.new_paths(size)
         return SarsaState(dr.full(mi.UInt32, NO_RECORD, size))
 
     def record(self, state, si, emitted, bs, weight, continues, active, vertex=None):

@@ -93,7 +93,7 @@ class _TreeGuide(Guide):
             return NoPathState()
         self._log = VertexLog(max_depth, with_pdf=True)
         self._pass_paths += size
-        return self._log.new_paths()
+        return self._log.new_paths(size)
 
     def guided_mask(self, tree, bsdf: mi.BSDFPtr, active):
         """Lanes that mix in the D-tree: a BSDF with a smooth lobe (without ``guide_delta_mixtures``: a BSDF

@@ -88,9 +88,14 @@ class VertexLog:
         self.max_depth, self.with_pdf = max_depth, with_pdf
         self._entry, self._cursor = _types(with_pdf)
 
-    def new_paths(self):
-        """The loop state of a path, none of its vertices logged yet."""
-        return self._cursor(entries=dr.alloc_local(self._entry, self.max_depth), n=mi.UInt32(0))
+    def new_paths(self, size: int):
+        """The loop state of ``size`` paths, none of their vertices logged yet.
+
+        The count is allocated at the full width, not as a scalar 0: Dr.Jit 1.5's CPU backend takes a local-memory
+        index whose variable has width 1 for the same in every lane of a packet, and the symbolic loop keeps the
+        width of a loop variable's initial value, so a scalar count, once the lanes' counts differ, wrote every
+        lane's vertex at the packet's largest count (tests/test_vertex_log.py)."""
+        return self._cursor(entries=dr.alloc_local(self._entry, self.max_depth), n=dr.zeros(mi.UInt32, size))
 
     def append(self, cursor, emitted: mi.Spectrum, weight: mi.Spectrum, continues: mi.Bool, target: mi.UInt32,
                active: mi.Bool, pdf: mi.Float = None):
