@@ -1,9 +1,9 @@
 """The Monte Carlo vertex log gives back, in the backward walk, every vertex a path logged, in its own slot.
 
 Inside a symbolic loop, with paths that start logging at different iterations, so that the lanes of a packet hold
-different counts (the path loop's case: a path logs from its first guided vertex on). A Dr.Jit CPU-backend quirk
-made a count initialised as a scalar write each lane's vertex at its packet's largest count: the walk then read
-slots never written (the stack's leftovers: wrong targets, and out-of-bounds writes into the tables).
+different counts (the path loop's case: a path logs from its first guided vertex on). That is where a count of
+width 1 goes wrong on Dr.Jit's CPU backend (see ``VertexLog.new_paths``): each lane's vertex lands at its packet's
+largest count, and the walk reads slots never written.
 """
 
 import drjit as dr
