@@ -16,15 +16,24 @@ from guiding.guides.vertex_log import NO_RECORD, VertexLog, walk_backward
 MAX_DEPTH = 8
 LANES = 1024            # many packets, on any vector width
 ITERATIONS = 12         # more than MAX_DEPTH: full logs stop logging
+STRIDE = 64             # a target is lane·STRIDE + its slot
+
+# The paths' pattern: _skipped and _length take Dr.Jit arrays (the log) and NumPy arrays (what it must give back).
 
 
-def _skipped(lane: mi.UInt32, k: mi.UInt32) -> mi.Bool:
+def _skipped(lane, k):
     """Iterations at which a lane has no target: a pattern that differs between neighbouring lanes."""
     return ((lane * 7 + k * 3) % 5 == 0) | (k < lane % 4)
 
 
-def _target(lane, n):
-    return lane * 64 + n
+def _length(lane):
+    """Iterations a lane's path runs (paths of different lengths)."""
+    return 4 + lane % 9
+
+
+def _weight(lane: mi.UInt32) -> mi.Float:
+    """The weight a lane logs at every vertex: another lane's vertex shows in it."""
+    return mi.Float(lane % 3 + 1) * 0.25
 
 
 @dr.syntax
@@ -34,11 +43,10 @@ def _log_and_walk(log: VertexLog):
     k = mi.UInt32(0)
     active = mi.Bool(True)
     while dr.hint(active, max_iterations=ITERATIONS):
-        target = dr.select(_skipped(lane, k), NO_RECORD, _target(lane, cursor.n))
-        weight = mi.Color3f(mi.Float(lane % 3 + 1) * 0.25)
-        cursor = log.append(cursor, mi.Color3f(0), weight, mi.Bool(True), target, active)
+        target = dr.select(_skipped(lane, k), NO_RECORD, lane * STRIDE + cursor.n)
+        cursor = log.append(cursor, mi.Color3f(0), mi.Color3f(_weight(lane)), mi.Bool(True), target, active)
         k += 1
-        active &= k < 4 + lane % 9      # paths of different lengths
+        active &= k < _length(lane)
 
     visited = dr.zeros(mi.UInt32, LANES)
     wrong = dr.zeros(mi.UInt32, LANES)
@@ -46,11 +54,11 @@ def _log_and_walk(log: VertexLog):
 
     def visit(entry, L):
         logged = entry.target != NO_RECORD
-        own = entry.target // 64 == lane
+        own = entry.target // STRIDE == lane
         dr.scatter_reduce(dr.ReduceOp.Add, visited, 1, lane)
-        dr.scatter_reduce(dr.ReduceOp.Add, wrong, 1, lane, (logged & ~own) |
-                          dr.any(entry.weight != mi.Float(lane % 3 + 1) * 0.25))
-        dr.scatter_reduce(dr.ReduceOp.Add, slots, 1, lane * MAX_DEPTH + entry.target % 64, logged & own)
+        dr.scatter_reduce(dr.ReduceOp.Add, wrong, 1, lane,
+                          (logged & ~own) | dr.any(entry.weight != _weight(lane)))
+        dr.scatter_reduce(dr.ReduceOp.Add, slots, 1, lane * MAX_DEPTH + entry.target % STRIDE, logged & own)
 
     walk_backward(cursor, visit)
     return cursor.n, visited, wrong, slots
@@ -58,18 +66,16 @@ def _log_and_walk(log: VertexLog):
 
 def _expected_log() -> tuple[np.ndarray, np.ndarray]:
     """Vertices each lane logs (from its first iteration with a target, at most MAX_DEPTH), and which of its slots
-    hold a target: the pattern in NumPy."""
-    counts = np.zeros(LANES, dtype=np.int64)
+    hold a target."""
+    lane = np.arange(LANES)
+    n = np.zeros(LANES, dtype=np.int64)
     slots = np.zeros((LANES, MAX_DEPTH), dtype=np.int64)
-    for lane in range(LANES):
-        n = 0
-        for k in range(4 + lane % 9):
-            skipped = (lane * 7 + k * 3) % 5 == 0 or k < lane % 4
-            if n < MAX_DEPTH and (n > 0 or not skipped):
-                slots[lane, n] = not skipped
-                n += 1
-        counts[lane] = n
-    return counts, slots
+    for k in range(ITERATIONS):
+        skipped = _skipped(lane, k)
+        written = (k < _length(lane)) & (n < MAX_DEPTH) & ((n > 0) | ~skipped)
+        slots[lane[written], n[written]] = ~skipped[written]
+        n += written
+    return n, slots
 
 
 def _check(log_and_walk) -> None:
