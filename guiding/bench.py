@@ -233,45 +233,52 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
     return pd.DataFrame(rows), pd.DataFrame(breakdown_rows)
 
 
+#: The pass modes ``bench --part pass-schedule`` compares: (growing passes, frozen passes). ``fixed``: passes of 8 spp,
+#: each traced (the first edition); ``growing``: :mod:`guiding.pass_schedule`'s sizes, each pass traced; ``frozen``:
+#: growing passes replaying the path loop's recording (:mod:`guiding.frozen_pass`; the default).
+PASS_MODES = {"fixed": (False, False), "growing": (True, False), "frozen": (True, True)}
+
+
 def pass_schedule_table(scenes: list[tuple[str, float]], methods: list[str], spp: int = 512, rounds: int = 2,
                         max_depth: int = 16) -> pd.DataFrame:
     """Per scene and method: the counted seconds (render and update, compilation excluded) of a render of ``spp``
-    spp with fixed passes of 8 spp and with growing passes (:mod:`guiding.pass_schedule`), the two renders
-    alternating, ``rounds`` times (medians); their ratio, and each mode's cost per spp over ``brdf``'s in the same
-    mode (what decides an equal-time comparison). The fixed passes' cost splits into the kernels' execution, the
-    guide's updates and the rest of each pass (tracing the loop in Python, launching, synchronising)."""
+    spp in each of the :data:`PASS_MODES`, the renders alternating, ``rounds`` times (medians); the speed-up of each
+    mode over the one before, and each mode's cost per spp over ``brdf``'s in the same mode (what decides an
+    equal-time comparison). The fixed and the frozen passes' costs split into the kernels' execution, the guide's
+    updates and the rest of each pass (tracing the loop in Python, launching, synchronising)."""
     from .integrator import GuidedPathIntegrator
     from .methods import make_guide
     from .render import Budget, render
     from .scenes import load_scene
 
-    props = mi.Properties()
-    props["max_depth"] = max_depth
     rows = []
     for number, (name, scale) in enumerate(scenes, 1):
         print(f"bench: scene {number}/{len(scenes)} {name} (scale {scale:g}): {', '.join(methods)}, {rounds} "
-              f"rounds of {spp} spp with fixed and with growing passes", file=sys.stderr, flush=True)
+              f"rounds of {spp} spp in each pass mode ({', '.join(PASS_MODES)})", file=sys.stderr, flush=True)
         scene = load_scene(name, scale)
         for method in methods:
-            seconds, passes, parts = {False: [], True: []}, {}, []
+            seconds = {mode: [] for mode in PASS_MODES}
+            passes, parts = {}, {mode: [] for mode in PASS_MODES}
             for index in range(rounds):
-                for growing in (False, True):
+                for mode, (growing, freeze) in PASS_MODES.items():
+                    props = mi.Properties()
+                    props["max_depth"], props["freeze"] = max_depth, freeze
                     result = render(scene, GuidedPathIntegrator(props, guide=make_guide(method)),
                                     Budget(spp=spp, growing_passes=growing), seed=index, progress=False)
-                    seconds[growing].append(result.counted_seconds())
-                    passes[growing] = len(result.passes)
-                    if not growing:
-                        parts.append(_pass_parts(result.passes))
-            fixed, growing = float(np.median(seconds[False])), float(np.median(seconds[True]))
-            split = {f"{part}_ms_per_spp_fixed": 1e3 * float(np.median([p[part] for p in parts])) / spp
-                     for part in ("kernel", "update", "rest")}
-            rows.append({"scene": name, "resolution": _resolution(scene), "method": method,
-                         "passes_fixed": passes[False], "passes_growing": passes[True],
-                         "ms_per_spp_fixed": 1e3 * fixed / spp, "ms_per_spp_growing": 1e3 * growing / spp,
-                         "speed_up": fixed / growing, **split})
+                    seconds[mode].append(result.counted_seconds())
+                    passes[mode] = len(result.passes)
+                    parts[mode].append(_pass_parts(result.passes))
+            row = {"scene": name, "resolution": _resolution(scene), "method": method}
+            row.update({f"passes_{mode}": passes[mode] for mode in PASS_MODES})
+            row.update({f"ms_per_spp_{mode}": 1e3 * float(np.median(seconds[mode])) / spp for mode in PASS_MODES})
+            row["speed_up_growing"] = row["ms_per_spp_fixed"] / row["ms_per_spp_growing"]
+            row["speed_up_frozen"] = row["ms_per_spp_growing"] / row["ms_per_spp_frozen"]
+            row.update({f"{part}_ms_per_spp_{mode}": 1e3 * float(np.median([p[part] for p in parts[mode]])) / spp
+                        for mode in ("fixed", "frozen") for part in ("kernel", "update", "rest")})
+            rows.append(row)
     frame = pd.DataFrame(rows)
     brdf = frame[frame["method"] == "brdf"].set_index("scene")
-    for mode in ("fixed", "growing"):
+    for mode in PASS_MODES:
         frame[f"ratio_to_brdf_{mode}"] = frame[f"ms_per_spp_{mode}"] / frame["scene"].map(brdf[f"ms_per_spp_{mode}"])
     return frame
 

@@ -87,8 +87,10 @@ def command_bench(args) -> None:
         return
     if schedule:
         frame = pass_schedule_table(scenes, [m for m in args.methods.split(",") if m])
-        write_table(frame, out / f"pass_schedule_{tag}", "Fixed against growing passes: counted seconds of 512-spp "
-                    "renders (render + update, compilation excluded; medians of 2 alternating rounds)", device,
+        write_table(frame, out / f"pass_schedule_{tag}", "Pass modes: counted seconds of 512-spp renders with fixed "
+                    "8-spp passes, growing passes, and growing frozen passes (render + update, compilation excluded; "
+                    "medians of 2 alternating rounds; `speed_up_growing`: fixed over growing, `speed_up_frozen`: "
+                    "growing over frozen)", device,
                     f"python -m guiding bench --part pass-schedule --scenes {args.scenes} --methods {args.methods}"
                     + backend_options)
         print(frame.to_string(index=False))

@@ -127,8 +127,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench = commands.add_parser("bench", help="cost per spp of every method vs `brdf` and Mitsuba's `path` "
                                 "(same process, interleaved passes)")
     bench.add_argument("--part", choices=["cost", "pass-schedule", "kernel-size", "profile"], default="cost",
-                       help="cost: cost per spp and its breakdown (default); pass-schedule: renders with fixed and "
-                       "with growing passes (results/pass_schedule); kernel-size: each method's render kernel in "
+                       help="cost: cost per spp and its breakdown (default); pass-schedule: renders with fixed, "
+                       "growing and frozen passes (results/pass_schedule); kernel-size: each method's render kernel in "
                        "machine instructions (CPU; results/bench/kernel_instructions); profile: each method's CPU time by "
                        "code, JIT kernels against Embree and the rest (Linux perf; results/bench/profile_cpu)")
     bench.add_argument("--scenes", help="comma-separated NAME:SCALE list (default: cost: the four shared scenes at 1/4 "

@@ -16,6 +16,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .frozen_pass import FrozenPasses, recordable
 from .guides import Guide
 
 
@@ -32,6 +33,8 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         passes, and later passes grow to ``pass_spp·2^k`` up to its next update (:mod:`guiding.pass_schedule`).
       ``growing_passes`` (bool, true): false keeps every pass at ``pass_spp``.
       ``seconds`` (float, 0): when positive, ``mi.render`` renders for this many seconds instead of ``spp``.
+      ``freeze`` (bool, true): passes after the first of each configuration replay the path loop's recorded
+        kernels instead of tracing it again (:mod:`guiding.frozen_pass`); false traces every pass.
       ``statistics`` (bool, false): grid methods only: the guide counts guided vertices, proposals and acceptances
         per pass (``guided_samples``, ``acceptance_rate``, … in the pass statistics; off by default, they cost
         atomics on every bounce).
@@ -61,7 +64,9 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
             statistics = props.get("statistics", False)
             guide = make_guide(props.get("method", "brdf"), **({"statistics": True} if statistics else {}))
         self.guide = guide
-        self._path_guide = guide      # what the path loop asks (see prepare)
+        self.path_guide = guide      # what the path loop asks (see prepare)
+        self.freeze = props.get("freeze", True)
+        self._frozen = None          # the frozen passes of the scene last prepared
         self.last_result = None
         self.reset_counters()
 
@@ -85,7 +90,10 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         return mi.TensorXf(self.last_result.image)
 
     def render_pass(self, scene: mi.Scene, sensor: mi.Sensor, seed: int, spp: int) -> mi.TensorXf:
-        """One pass of ``spp`` samples per pixel with the guide as it is (Mitsuba's own ``render``)."""
+        """One pass of ``spp`` samples per pixel with the guide as it is (Mitsuba's own ``render``; frozen, see
+        ``freeze``, once :meth:`prepare` has seen the scene)."""
+        if self.freeze and self._frozen is not None and self._frozen.scene_id == id(scene):
+            return self._frozen.render(scene, sensor, seed, spp)
         return mi.render(scene, integrator=_PassRenderer(self), sensor=sensor, seed=seed, spp=spp)
 
     def prepare(self, scene: mi.Scene) -> None:
@@ -93,7 +101,8 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         the guide guides, the passes trace plain BSDF sampling, without the guide's code (masked off at every
         vertex, it would still cost every bounce)."""
         self.guide.prepare(scene)
-        self._path_guide = self.guide if self.guide.guides_any(scene) else _BSDF_SAMPLING
+        self.path_guide = self.guide if self.guide.guides_any(scene) else _BSDF_SAMPLING
+        self._frozen = FrozenPasses(self, scene, _PassRenderer) if self.freeze and recordable(scene) else None
 
     def reset_counters(self) -> None:
         self.path_count = mi.UInt32(0)
@@ -103,7 +112,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     @dr.syntax
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f, medium: mi.Medium = None,
                active: mi.Bool = True) -> tuple[mi.Spectrum, mi.Bool, list]:
-        guide = self._path_guide
+        guide = self.path_guide
         records = guide.records()
         bsdf_ctx = mi.BSDFContext()
 

@@ -40,7 +40,8 @@ class Guide:
 
     Host side, in this order:
       ``prepare(scene)`` once before the first pass; ``update(spp_done)`` after each pass, once the pass's
-      kernel has run (an :class:`UpdateResult`); ``stats()`` at any time; ``records()`` before each pass.
+      kernel has run (an :class:`UpdateResult`); ``stats()`` at any time; ``records()`` and ``trace_key()`` before
+      each pass.
     Device side, traced into the path loop:
       ``new_paths(size, max_depth)`` builds the per-path state carried through the loop;
       ``guides(bsdf, active)`` the lanes whose BSDF it may guide (the others are BSDF-sampled);
@@ -79,6 +80,12 @@ class Guide:
     def stats(self) -> dict:
         """Memory and configuration figures for ``stats.json``."""
         return {}
+
+    def trace_key(self) -> tuple:
+        """The host-side values that shape the traced path loop (Python branches, literals): a pass whose key is
+        new traces it, the others replay a recording (:mod:`guiding.frozen_pass`). Tables are not part of it: every
+        Dr.Jit array of the guide is an input of the replay."""
+        return (self.records(),)
 
     # ----------------------------------------------------------- schedule (host side)
     # A guide whose learning runs in iterations (the SD-tree) ends one by setting ``UpdateResult.iteration_done``;

@@ -193,6 +193,9 @@ class GridGuide(Guide):
         # A profiled stage (benchmark instrument) learns its tables in the warm-up passes, then records nothing.
         return self._stage == len(PROFILE_STAGES) or self._updates < PROFILE_TRAINING_PASSES
 
+    def trace_key(self) -> tuple:
+        return self.trained, self.records()
+
     def stats(self) -> dict:
         table = self.record_table
         return {"rule": self.rule, "sampler": self.sampler, "proposal": self.proposal,

@@ -169,7 +169,10 @@ class RadianceRecord:
         self.sub_resolution = sub_resolution
         self.fine = sub_resolution * sub_resolution
         self.refined_stats: dict[str, int] = {}
-        dr.eval(self.policy)
+        # In memory, not literals: the untrained passes' tables are the same kind of input to a frozen pass as the
+        # trained ones' (guiding.frozen_pass).
+        dr.make_opaque(self.acc_sum, self.acc_count, self.q, self.policy, *((self.visited, self.pair_memo, self.value, self.hemi_alias)
+                                             if self.needs_pairs else ()))
 
     # ------------------------------------------------------------------ geometry
     def set_bounds(self, bbox: mi.BoundingBox3f) -> None:

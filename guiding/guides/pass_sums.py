@@ -15,8 +15,11 @@ import mitsuba as mi
 
 
 def pass_sums(entries: int) -> mi.Float64:
-    """Empty sums and counts of ``entries`` entries."""
-    return dr.zeros(mi.Float64, 2 * entries)
+    """Empty sums and counts of ``entries`` entries (in memory, not a literal: a frozen pass takes them as the
+    same kind of input every time)."""
+    sums = dr.zeros(mi.Float64, 2 * entries)
+    dr.make_opaque(sums)
+    return sums
 
 
 def add_target(sums: mi.Float64, index: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:

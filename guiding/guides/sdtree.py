@@ -74,7 +74,7 @@ class _TreeGuide(Guide):
         self.guide_delta_mixtures = parameters.guide_delta_mixtures
         self._built = False
         self._log: VertexLog | None = None               # how the paths of the pass log their vertices
-        self._pass_paths = 0                             # paths recorded since the last update
+        self._pass_paths = mi.UInt32(0)                  # paths recorded since the last update (counted in the kernel)
         self._sampling: DeviceForest | None = None
         self._recording: DeviceForest | None = None
         self._energy_acc = None
@@ -84,6 +84,9 @@ class _TreeGuide(Guide):
     def records(self) -> bool:
         return True
 
+    def trace_key(self) -> tuple:
+        return self.records(), self._built
+
     # -------------------------------------------------------------------------------------- device side
     def _locate(self, p, active):
         raise NotImplementedError
@@ -92,7 +95,8 @@ class _TreeGuide(Guide):
         if not self.records():
             return NoPathState()
         self._log = VertexLog(max_depth, with_pdf=True)
-        self._pass_paths += size
+        # Counted on the device, not here: a frozen pass (guiding.frozen_pass) does not run this method.
+        dr.scatter_reduce(dr.ReduceOp.Add, self._pass_paths, 1, dr.zeros(mi.UInt32, size))
         return self._log.new_paths(size)
 
     def guided_mask(self, tree, bsdf: mi.BSDFPtr, active):
@@ -342,8 +346,8 @@ class SDTreeGuide(_TreeGuide):
         the last iteration restarts its accumulation there)."""
         pass_iteration = self.iteration
         recorded = self.records()
-        self._iteration_paths += self._pass_paths
-        self._pass_paths = 0
+        self._iteration_paths += int(self._pass_paths[0])
+        self._pass_paths = mi.UInt32(0)
         stats = {"refine_seconds": 0.0}
         iteration_done = recorded and not self.is_final_iteration and spp_done >= self.iteration_end_spp
         if iteration_done:
