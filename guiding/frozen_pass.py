@@ -8,8 +8,8 @@ the pass's inputs: the scene, the seed, and every Dr.Jit array of the guide and 
 afresh each pass (:func:`device_arrays`), so the tables an update rebuilt are the ones read.
 
 What Dr.Jit cannot see as an input is a Python value that shapes the traced code; a guide declares those in
-:meth:`~guiding.guides.base.Guide.trace_key` (whether it records, whether it is trained, …), and the pass's spp is
-part of the key too (the path state's width is a literal of the kernel). A new key traces and records once more.
+:meth:`~guiding.guides.base.Guide.trace_key` (whether it records, whether it is trained, …); the pass's spp (the path
+state's width is a literal of the kernel) and the integrator's depths are part of the key too. A new key traces and records once more.
 ``tests/test_frozen_pass.py`` checks that frozen passes give the same images as traced ones, pass by pass, for every
 kind of guide.
 """
@@ -98,8 +98,10 @@ class FrozenPasses:
 
     def render(self, scene: mi.Scene, sensor: mi.Sensor, seed: int, spp: int) -> mi.TensorXf:
         """One pass of ``spp`` samples per pixel of ``sensor`` with sampler seed ``seed``."""
-        guide = self._integrator().path_guide
-        return self._render(scene, sensor, dr.opaque(mi.UInt32, seed), spp, (type(guide), guide.trace_key()))
+        integrator = self._integrator()
+        guide = integrator.path_guide
+        key = (type(guide), guide.trace_key(), integrator.max_depth, integrator.rr_depth, integrator.rr_min)
+        return self._render(scene, sensor, dr.opaque(mi.UInt32, seed), spp, key)
 
     @property
     def recordings(self) -> int:

@@ -99,7 +99,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     def prepare(self, scene: mi.Scene) -> None:
         """Before the first pass on ``scene``: the guide allocates its tables; and where no BSDF of the scene is one
         the guide guides, the passes trace plain BSDF sampling, without the guide's code (masked off at every
-        vertex, it would still cost every bounce)."""
+        vertex, it would still cost every bounce). The passes on ``scene`` are frozen from here on (``freeze``)."""
         self.guide.prepare(scene)
         self.path_guide = self.guide if self.guide.guides_any(scene) else _BSDF_SAMPLING
         self._frozen = FrozenPasses(self, scene, _PassRenderer) if self.freeze and recordable(scene) else None
@@ -180,8 +180,9 @@ class _PassRenderer(mi.SamplingIntegrator):
 
     A separate object because Mitsuba's trampoline sends a call of the base ``render`` on a GuidedPathIntegrator back
     to its Python ``render`` (the progressive loop) unless that is running, and reaching the base from there nests
-    two bindings whose Ctrl-C handlers swallow the signal. Made for each pass, and not kept by the integrator:
-    ``mi.render`` traverses the integrator's attributes, and a reference cycle would never end."""
+    two bindings whose Ctrl-C handlers swallow the signal. Made for each traced pass (each recording of a frozen one),
+    and not kept by the integrator: ``mi.render`` traverses the integrator's attributes, and a reference cycle would
+    never end."""
 
     def __init__(self, integrator: GuidedPathIntegrator):
         super().__init__(mi.Properties())
