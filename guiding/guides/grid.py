@@ -84,14 +84,6 @@ class _Vertex:
     bsdf_share: mi.Float = None    # u: bsdf_fraction, or max(ε_r, min_bsdf_share); ≥ smooth_bsdf_share if not diffuse
 
 
-def _direction_from_alias(bins, slots: mi.Float, row: mi.UInt32, sampler: mi.Sampler,
-                          active: mi.Bool) -> tuple[mi.Vector3f, mi.UInt32, mi.Float]:
-    """A bin drawn from one row of alias tables, then a uniform direction inside it: (world direction, bin, the
-    bin's density)."""
-    k, density = alias_rows.sample(slots, row, bins.count, sampler.next_2d(active), active)
-    return bins.sample(k, sampler.next_2d(active)), k, density
-
-
 def _first_accepted(sampler, searching, propose, accepts, count: int) -> tuple[mi.Vector3f, mi.Bool, mi.UInt32]:
     """``count`` proposals side by side, without a loop: (the first accepted, whether one was, the proposals made
     until then). Where most lanes accept the first proposal, a symbolic loop cost more than the proposals it saved
@@ -375,7 +367,7 @@ class GridGuide(Guide):
         k = fine_bin // table.fine if table.refinement else fine_bin
         if self.sampler == "sphere_inv":
             return table.cell_density(vertex.cell, k, active)
-        return table.hemi_density(vertex.memo.row, k, active)
+        return table.hemi_density(vertex.pair, vertex.memo.row, k, active)
 
     def _mixture_pdf(self, vertex, world: mi.Vector3f, bsdf_pdf: mi.Float, chosen_bin=None,
                      bin_density=None) -> mi.Float:
@@ -418,9 +410,12 @@ class GridGuide(Guide):
         """A world direction drawn from the sampler's alias row (the cell's, or the pair's), its bin and the bin's
         density."""
         table = self.record_table
+        u = sampler.next_2d(active)
         if self.sampler == "sphere_inv":
-            return _direction_from_alias(table.bins, table.cell_alias, vertex.cell, sampler, active)
-        return _direction_from_alias(table.bins, table.hemi_alias, vertex.memo.row, sampler, active)
+            k, density = alias_rows.sample(table.cell_alias, vertex.cell, table.bins.count, u, active)
+        else:
+            k, density = table.hemi_sample(vertex.pair, vertex.memo.row, u, active)
+        return table.bins.sample(k, sampler.next_2d(active)), k, density
 
     def _sample_rejection(self, sampler, vertex, searching) -> tuple[mi.Vector3f, mi.UInt32 | None, mi.Float | None,
                                                                      mi.Bool]:
@@ -430,8 +425,7 @@ class GridGuide(Guide):
         centre = vertex.centre
         k = density = None
         if self.proposal == "bins":
-            k, density = alias_rows.sample(table.hemi_alias, vertex.memo.row, table.bins.count,
-                                           sampler.next_2d(searching), searching)
+            k, density = table.hemi_sample(vertex.pair, vertex.memo.row, sampler.next_2d(searching), searching)
             if table.refinement:
                 entry = vertex.cell * table.bins.count + k
                 refined = table.refinement.sampled(entry, searching)

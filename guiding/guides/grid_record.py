@@ -16,7 +16,10 @@ the (cell, normal bin) pairs the last passes visited:
 - ``value`` V = ∫_H Q·cos dω, Expected SARSA's expectation,
 - ``hemi_alias``, the alias table (:mod:`~guiding.guides.alias_rows`) of P·∫_bin cos over the bins (``hemi_inv``,
   and the ``bins`` proposal of the rejection samplers), one row per visited pair only (469 rows on cornell-box at
-  S = 8, against the 76 800 pairs of the grid); a slot's read gives the drawn bin with its density:
+  S = 8, against the 76 800 pairs of the grid), and in a row only the bins its normal bin reaches (``row_bins``:
+  those with a direction above the horizon of some normal of the normal bin, 290 of D = 16's 512 at most; the
+  others have nothing to draw, and building their slots after every pass cost as much as the rest); a slot's read
+  gives the drawn bin with its density:
   ``P_k·s_k`` per unit cos⁺(ω, n_c) for the ``bins`` proposal (``P_k`` alone for a refined bin, whose sub-bin
   density multiplies it), ``P_k/A`` per steradian for ``hemi_inv``.
 
@@ -71,6 +74,8 @@ IN_BIN_PROPOSALS = 2
 ROW_BUILD_BYTES = alias_rows.SLOT_BYTES + alias_rows.BUILD_BYTES + 8
 #: Floats per pair in ``pair_memo`` (:class:`PairMemo`).
 PAIR_FIELDS = 4
+#: The slot of a bin that a normal bin's rows do not hold (``row_slots``).
+NO_SLOT = 0xFFFFFFFF
 
 
 @dataclass
@@ -164,6 +169,7 @@ class RadianceRecord:
             self.cos_integral, self.max_cos = self._cosine_tables()
             self.in_bin_bound, self.in_bin_scale, self.in_bin_misses = (self._in_bin_tables() if needs_in_bin
                                                                         else (None, None, None))
+            self.row_bins, self.row_slots, self.row_size = self._row_layout()
         self.refinement = (BinRefinement(self.bins, C * B, sub_resolution, refine_share, refine_capacity)
                            if sub_resolution > 1 else None)
         self.sub_resolution = sub_resolution
@@ -204,9 +210,20 @@ class RadianceRecord:
         """Flat (cell, normal bin) index of a cell and a unit normal."""
         return cell * self.normal_bins.count + self.normal_bins.index(n)
 
-    def hemi_density(self, row: mi.UInt32, k: mi.UInt32, active: mi.Bool) -> mi.Float:
-        """The density of bin ``k`` in row ``row`` of ``hemi_alias`` (see the module's docstring)."""
-        return alias_rows.density(self.hemi_alias, row, self.bins.count, k, active)
+    def hemi_sample(self, pair: mi.UInt32, row: mi.UInt32, u: mi.Point2f,
+                    active: mi.Bool) -> tuple[mi.UInt32, mi.Float]:
+        """A bin drawn with ``u`` from row ``row`` of ``hemi_alias`` (the row of pair ``pair``), and its density
+        (see the module's docstring)."""
+        slot, density = alias_rows.sample(self.hemi_alias, row, self.row_size, u, active)
+        k = dr.gather(mi.UInt32, self.row_bins, (pair % self.normal_bins.count) * self.row_size + slot, active)
+        return k, density
+
+    def hemi_density(self, pair: mi.UInt32, row: mi.UInt32, k: mi.UInt32, active: mi.Bool) -> mi.Float:
+        """The density of bin ``k`` in row ``row`` of ``hemi_alias`` (the row of pair ``pair``); 0 for a bin the row
+        does not hold."""
+        slot = dr.gather(mi.UInt32, self.row_slots, (pair % self.normal_bins.count) * self.bins.count + k, active)
+        held = active & (slot != NO_SLOT)
+        return dr.select(held, alias_rows.density(self.hemi_alias, row, self.row_size, slot, held), 0)
 
     def cell_density(self, cell: mi.UInt32, k: mi.UInt32, active: mi.Bool) -> mi.Float:
         """The density (per steradian) of bin ``k`` in ``cell``'s row of ``cell_alias``."""
@@ -287,6 +304,24 @@ class RadianceRecord:
         gain = np.where(a > 1e-12, (1.0 - miss) / np.maximum(a, 1e-300), float(IN_BIN_PROPOSALS))
         return tuple(mi.Float(t.astype(np.float32)) for t in (bound, gain / (area * bound), miss))
 
+    def _row_layout(self) -> tuple[mi.UInt32, mi.UInt32, int]:
+        """Which bins the rows of a normal bin hold: those with ``max_cos`` > 0 (above the horizon of some normal of
+        the normal bin; any other has weight 0 for every sampler), in order, padded with ``B`` (no bin, weight 0) to
+        the largest count, the row size R. Returns the bins (``nb·R + slot``), the slot of every bin (``nb·B + k``;
+        NO_SLOT where not held) and R."""
+        import numpy as np
+
+        B, NB = self.bins.count, self.normal_bins.count
+        held = np.array(self.max_cos).reshape(NB, B) > 0
+        size = max(int(held.sum(axis=1).max()), 1)
+        bins = np.full((NB, size), B, dtype=np.uint32)
+        slots = np.full((NB, B), NO_SLOT, dtype=np.uint32)
+        for nb in range(NB):
+            ks = np.flatnonzero(held[nb])
+            bins[nb, :len(ks)] = ks
+            slots[nb, ks] = np.arange(len(ks))
+        return mi.UInt32(bins.ravel()), mi.UInt32(slots.ravel()), size
+
     def in_bin_flat(self, pair: mi.UInt32, k: mi.UInt32) -> mi.UInt32:
         """Index of the in-bin tables for bin ``k`` at the normal bin of ``pair``."""
         return (pair % self.normal_bins.count) * self.bins.count + k
@@ -357,40 +392,44 @@ class RadianceRecord:
         count = dr.width(pairs)
         if count == 0:
             return 0
-        row_bytes = count * B * ROW_BUILD_BYTES
+        R = self.row_size
+        row_bytes = count * R * ROW_BUILD_BYTES
         if self.row_memory_limit is not None and row_bytes > self.row_memory_limit:
             raise GuidingError(f"the grid guide visited {count} (cell, normal bin) pairs: their alias rows need "
                                f"{row_bytes / 2 ** 30:.1f} GiB to build, over the "
                                f"{self.row_memory_limit / 2 ** 30:.1f} GiB left by the memory limit; lower S or D, "
                                "or raise the limit")
-        flat = dr.arange(mi.UInt32, count * B)
-        pair = dr.gather(mi.UInt32, pairs, flat // B)
-        k = flat % B
+        # One entry per slot of the pairs' rows (_row_layout): N, M and V sum over the bins a row holds, the
+        # others adding nothing (their cosines are 0).
+        flat = dr.arange(mi.UInt32, count * R)
+        pair = dr.gather(mi.UInt32, pairs, flat // R)
         cell, nb = pair // NB, pair % NB
-        p = dr.gather(mi.Float, self.policy, cell * B + k)
-        cos_integral = dr.gather(mi.Float, self.cos_integral, nb * B + k)
-        max_cos = dr.gather(mi.Float, self.max_cos, nb * B + k)
+        k = dr.gather(mi.UInt32, self.row_bins, nb * R + flat % R)
+        held = k < B
+        p = dr.gather(mi.Float, self.policy, cell * B + k, held)
+        cos_integral = dr.gather(mi.Float, self.cos_integral, nb * B + k, held)
+        max_cos = dr.gather(mi.Float, self.max_cos, nb * B + k, held)
 
-        norm = dr.block_reduce(dr.ReduceOp.Add, p * cos_integral, B)
-        bound = dr.block_reduce(dr.ReduceOp.Max, p * max_cos, B)
+        norm = dr.block_reduce(dr.ReduceOp.Add, p * cos_integral, R)
+        bound = dr.block_reduce(dr.ReduceOp.Max, p * max_cos, R)
         row, in_bin_miss = dr.zeros(mi.UInt32, count), dr.zeros(mi.Float, count)
         if self.needs_value:
-            q = dr.gather(mi.Float, self.q, cell * B + k)
-            dr.scatter(self.value, dr.block_reduce(dr.ReduceOp.Add, q * cos_integral, B), pairs)
+            q = dr.gather(mi.Float, self.q, cell * B + k, held)
+            dr.scatter(self.value, dr.block_reduce(dr.ReduceOp.Add, q * cos_integral, R), pairs)
         if self.needs_hemi_alias:
             if self.needs_in_bin:
                 weight = p * cos_integral
-                miss = dr.gather(mi.Float, self.in_bin_misses, nb * B + k)
-                scale = dr.gather(mi.Float, self.in_bin_scale, nb * B + k)
+                miss = dr.gather(mi.Float, self.in_bin_misses, nb * B + k, held)
+                scale = dr.select(held, dr.gather(mi.Float, self.in_bin_scale, nb * B + k, held), 1)
                 if self.refinement:     # a refined bin draws its direction without rejection, from its sub-bins
-                    refined = self.refinement.sampled(cell * B + k, True)
+                    refined = self.refinement.sampled(cell * B + k, held)
                     miss, scale = dr.select(refined, 0, miss), dr.select(refined, 1, scale)
-                total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, B), flat // B)
-                in_bin_miss = dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, B)
+                total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, R), flat // R)
+                in_bin_miss = dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, R)
             else:
                 weight = p * dr.maximum(cos_integral, dr.select(max_cos > 0, REACHABLE_FLOOR * self.bins.solid_angle, 0))
                 scale = 1 / self.bins.solid_angle
-            self.hemi_alias = alias_rows.build(weight, B, scale)
+            self.hemi_alias = alias_rows.build(weight, R, scale)
             row = dr.arange(mi.UInt32, count)
         dr.scatter(self.pair_memo, mi.Vector4f(norm, dr.reinterpret_array(mi.Float, row), bound, in_bin_miss), pairs)
         dr.eval(self.pair_memo, self.value, self.hemi_alias)
@@ -403,14 +442,14 @@ class RadianceRecord:
                       refine_capacity: int = 0) -> int:
         """The bytes of the tables whose size is fixed when a record is built with these arguments, computed
         without allocating anything (so that an oversized table can be refused before it is built). The alias rows
-        of the visited pairs (``hemi_alias``, 2·D² slots per pair) come on top: they grow with the visits, and
-        :meth:`_update_memo` checks them against ``row_memory_limit``."""
+        of the visited pairs (``hemi_alias``, at most 2·D² slots per pair: the bins its normal bin reaches) come on
+        top: they grow with the visits, and :meth:`_update_memo` checks them against ``row_memory_limit``."""
         C, B, NB = spatial_resolution ** 3, 2 * directional_resolution ** 2, 6 * normal_resolution ** 2
         total = C * B * (8 + 8 + 8 + 8 + 4 + 4)                # totals, pass sums, Q, policy
         if needs_cell_alias:
             total += alias_rows.SLOT_BYTES * C * B               # the cells' alias tables
         if needs_memo or needs_hemi_alias or needs_in_bin or needs_value:
-            total += 4 * ((PAIR_FIELDS + 2) * C * NB + (5 if needs_in_bin else 2) * NB * B)   # cosine, in-bin tables
+            total += 4 * ((PAIR_FIELDS + 2) * C * NB + (7 if needs_in_bin else 4) * NB * B)   # cosine, in-bin, row layout
             total += alias_rows.SLOT_BYTES * B if needs_hemi_alias else 0                      # placeholder row
         if sub_resolution > 1:
             total += BinRefinement.planned_bytes(C * B, sub_resolution, refine_capacity)
@@ -419,7 +458,7 @@ class RadianceRecord:
     def memory_bytes(self) -> int:
         arrays = [self.acc_sum, self.acc_count, self.pass_targets, self.q, self.policy, self.cell_alias]
         if self.needs_pairs:
-            arrays += [self.visited, self.pair_memo, self.value, self.hemi_alias,
+            arrays += [self.visited, self.pair_memo, self.value, self.hemi_alias, self.row_bins, self.row_slots,
                        self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_scale, self.in_bin_misses]
         refined = self.refinement.memory_bytes() if self.refinement else 0
         return refined + sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays if a is not None)

@@ -88,21 +88,21 @@ def record_violations(record) -> list[str]:
     sums = policy.astype(np.float64).sum(axis=1)
     if not (np.abs(sums - 1) <= B * EPS32).all():
         problems.append(f"cell policies sum to {sums[np.abs(sums - 1) > B * EPS32][:3]}")
-    rows = [("cell_alias", tables.get("cell_alias"))]
-    if record.needs_pairs and record.hemi_alias is not None:
-        visited = np.count_nonzero(np.array(record.visited))       # one row per visited pair (a placeholder if none)
-        rows.append(("hemi_alias", tables["hemi_alias"].reshape(-1, B * SLOT_FIELDS)[:visited]))
-    for name, slots in rows:
+    rows = [("cell_alias", tables.get("cell_alias"), B)]
+    if record.needs_pairs and record.hemi_alias is not None and np.count_nonzero(np.array(record.visited)):
+        # one row of row_size slots per visited pair
+        rows.append(("hemi_alias", tables["hemi_alias"], record.row_size))
+    for name, slots, size in rows:
         if slots is None:
             continue
-        slots = slots.reshape(-1, B, SLOT_FIELDS)
+        slots = slots.reshape(-1, size, SLOT_FIELDS)
         threshold, alias, density = slots[..., 0], slots[..., 1].view(np.uint32), slots[..., 2]
-        if not ((threshold >= 0) & (threshold <= 1) & (alias < B)).all():
+        if not ((threshold >= 0) & (threshold <= 1) & (alias < size)).all():
             problems.append(f"{name} has thresholds outside [0, 1] or aliases outside the row")
-        drawn = drawn_probability(slots, B)
+        drawn = drawn_probability(slots, size)
         if not ((density >= 0).all() and (density[drawn > 0] > 0).all()):
             problems.append(f"{name} has negative densities, or density 0 for a bin it draws")
-        if not (np.abs(drawn.sum(axis=1) - 1) <= B * EPS32).all():
+        if not (np.abs(drawn.sum(axis=1) - 1) <= size * EPS32).all():
             problems.append(f"{name} rows draw with total probability {drawn.sum(axis=1)[:3]} instead of 1")
         if not np.array_equal(slots[..., 3], np.take_along_axis(density, alias.astype(np.int64), axis=1)):
             problems.append(f"{name} slots carry an alias density other than the alias bin's")

@@ -41,11 +41,11 @@ def test_planned_table_size_is_what_built_tables_report(rule, figures):
                 record.visited = record.visited + 1
             record.update(spp_done=8)
             visited = record.memory_bytes()
-            # every pair's row, in place of the placeholder row a fresh record holds
-            row = record.bins.count * SLOT_BYTES                                   # the pair's alias slots
-            rows = (record.cells * record.normal_bins.count - 1) * row if record.needs_hemi_alias else 0
-            assert planned + rows == visited, f"{sampler} ({proposal}): planned {planned} + rows {rows} bytes, " \
-                                              f"all pairs visited {visited}"
+            # every pair's row of row_size slots, in place of the placeholder row of B slots a fresh record holds
+            pairs = record.cells * record.normal_bins.count
+            rows = (pairs * record.row_size - record.bins.count) * SLOT_BYTES if record.needs_hemi_alias else 0
+            assert fresh + rows == visited, f"{sampler} ({proposal}): fresh {fresh} + rows {rows} bytes, " \
+                                            f"all pairs visited {visited}"
     figures["configurations"] = len(SAMPLERS) * len(PROPOSALS)
 
 
