@@ -17,9 +17,9 @@ the (cell, normal bin) pairs the last passes visited:
 - ``hemi_alias``, the alias table (:mod:`~guiding.guides.alias_rows`) of P·∫_bin cos over the bins (``hemi_inv``,
   and the ``bins`` proposal of the rejection samplers), one row per visited pair only (469 rows on cornell-box at
   S = 8, against the 76 800 pairs of the grid), and in a row only the bins its normal bin reaches (``row_bins``:
-  those with a direction above the horizon of some normal of the normal bin, 290 of D = 16's 512 at most; the
-  others have nothing to draw, and building their slots after every pass cost as much as the rest); a slot's read
-  gives the drawn bin with its density:
+  those with a direction above the horizon of some normal of the normal bin, 368 of D = 16's 512 at most; the
+  others have nothing to draw, and the rebuild after every pass need not build their slots); a slot's read gives
+  the drawn bin with its density:
   ``P_k·s_k`` per unit cos⁺(ω, n_c) for the ``bins`` proposal (``P_k`` alone for a refined bin, whose sub-bin
   density multiplies it), ``P_k/A`` per steradian for ``hemi_inv``.
 
