@@ -234,8 +234,8 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
 
 
 #: The pass modes ``bench --part pass-schedule`` compares: (growing passes, frozen passes). ``fixed``: passes of 8 spp,
-#: each traced (the first edition); ``growing``: :mod:`guiding.pass_schedule`'s sizes, each pass traced; ``frozen``:
-#: growing passes replaying the path loop's recording (:mod:`guiding.frozen_pass`; the default).
+#: each traced; ``growing``: :mod:`guiding.pass_schedule`'s sizes, each pass traced; ``frozen``: growing passes
+#: replaying the path loop's recording (:mod:`guiding.frozen_pass`; the default).
 PASS_MODES = {"fixed": (False, False), "growing": (True, False), "frozen": (True, True)}
 
 
@@ -258,7 +258,7 @@ def pass_schedule_table(scenes: list[tuple[str, float]], methods: list[str], spp
         scene = load_scene(name, scale)
         for method in methods:
             seconds = {mode: [] for mode in PASS_MODES}
-            passes, parts = {}, {mode: [] for mode in PASS_MODES}
+            passes, parts = {}, {"fixed": [], "frozen": []}      # the modes whose cost is split into parts
             for index in range(rounds):
                 for mode, (growing, freeze) in PASS_MODES.items():
                     props = mi.Properties()
@@ -267,14 +267,15 @@ def pass_schedule_table(scenes: list[tuple[str, float]], methods: list[str], spp
                                     Budget(spp=spp, growing_passes=growing), seed=index, progress=False)
                     seconds[mode].append(result.counted_seconds())
                     passes[mode] = len(result.passes)
-                    parts[mode].append(_pass_parts(result.passes))
+                    if mode in parts:
+                        parts[mode].append(_pass_parts(result.passes))
             row = {"scene": name, "resolution": _resolution(scene), "method": method}
             row.update({f"passes_{mode}": passes[mode] for mode in PASS_MODES})
             row.update({f"ms_per_spp_{mode}": 1e3 * float(np.median(seconds[mode])) / spp for mode in PASS_MODES})
             row["speed_up_growing"] = row["ms_per_spp_fixed"] / row["ms_per_spp_growing"]
             row["speed_up_frozen"] = row["ms_per_spp_growing"] / row["ms_per_spp_frozen"]
             row.update({f"{part}_ms_per_spp_{mode}": 1e3 * float(np.median([p[part] for p in parts[mode]])) / spp
-                        for mode in ("fixed", "frozen") for part in ("kernel", "update", "rest")})
+                        for mode in parts for part in ("kernel", "update", "rest")})
             rows.append(row)
     frame = pd.DataFrame(rows)
     brdf = frame[frame["method"] == "brdf"].set_index("scene")

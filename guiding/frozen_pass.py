@@ -8,10 +8,13 @@ the pass's inputs: the scene, the seed, and every Dr.Jit array of the guide and 
 afresh each pass (:func:`device_arrays`), so the tables an update rebuilt are the ones read.
 
 What Dr.Jit cannot see as an input is a Python value that shapes the traced code; a guide declares those in
-:meth:`~guiding.guides.base.Guide.trace_key` (whether it records, whether it is trained, …); the pass's spp (the path
-state's width is a literal of the kernel) and the integrator's depths are part of the key too. A new key traces and records once more.
-``tests/test_frozen_pass.py`` checks that frozen passes give the same images as traced ones, pass by pass, for every
-kind of guide.
+:meth:`~guiding.guides.base.Guide.trace_key` (whether it records, whether it is trained, …); the pass's spp and the
+film's size (the path state's width is a literal of the kernel) and the integrator's depths are part of the key
+too. A new key traces and records once more. ``tests/test_frozen_pass.py`` checks that frozen passes give the same
+images as traced ones, pass by pass, for every kind of guide.
+
+Whether Dr.Jit can record a scene is probed once, when the integrator prepares for it (:func:`recordable`): a BSDF
+created outside the scene after that makes the next recording fail, in the middle of the render.
 """
 
 from __future__ import annotations
@@ -90,7 +93,9 @@ class FrozenPasses:
             return (device_arrays(integrator.path_guide), integrator.path_count, integrator.hit_count,
                     integrator.ray_count)
 
-        @dr.freeze(state_fn=inputs)
+        # A render records once per pass size and key, and the SD-tree once more per iteration: more than
+        # Dr.Jit's default of 10 is expected, not a sign of needless tracing.
+        @dr.freeze(state_fn=inputs, warn_after=100)
         def render(scene, sensor, seed, spp, key):
             return mi.render(scene, integrator=renderer(owner()), sensor=sensor, seed=seed, spp=spp)
 
@@ -100,7 +105,8 @@ class FrozenPasses:
         """One pass of ``spp`` samples per pixel of ``sensor`` with sampler seed ``seed``."""
         integrator = self._integrator()
         guide = integrator.path_guide
-        key = (type(guide), guide.trace_key(), integrator.max_depth, integrator.rr_depth, integrator.rr_min)
+        key = (type(guide), guide.trace_key(), integrator.max_depth, integrator.rr_depth, integrator.rr_min,
+               tuple(sensor.film().crop_size()))     # the paths' width is a literal of the kernel
         return self._render(scene, sensor, dr.opaque(mi.UInt32, seed), spp, key)
 
     @property

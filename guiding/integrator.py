@@ -66,7 +66,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         self.guide = guide
         self.path_guide = guide      # what the path loop asks (see prepare)
         self.freeze = props.get("freeze", True)
-        self._frozen = None          # the frozen passes of the scene last prepared
+        self.frozen_passes = None     # the FrozenPasses of the scene last prepared (None: traced passes)
         self.last_result = None
         self.reset_counters()
 
@@ -92,8 +92,8 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     def render_pass(self, scene: mi.Scene, sensor: mi.Sensor, seed: int, spp: int) -> mi.TensorXf:
         """One pass of ``spp`` samples per pixel with the guide as it is (Mitsuba's own ``render``; frozen, see
         ``freeze``, once :meth:`prepare` has seen the scene)."""
-        if self.freeze and self._frozen is not None and self._frozen.scene_id == id(scene):
-            return self._frozen.render(scene, sensor, seed, spp)
+        if self.freeze and self.frozen_passes is not None and self.frozen_passes.scene_id == id(scene):
+            return self.frozen_passes.render(scene, sensor, seed, spp)
         return mi.render(scene, integrator=_PassRenderer(self), sensor=sensor, seed=seed, spp=spp)
 
     def prepare(self, scene: mi.Scene) -> None:
@@ -102,7 +102,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         vertex, it would still cost every bounce). The passes on ``scene`` are frozen from here on (``freeze``)."""
         self.guide.prepare(scene)
         self.path_guide = self.guide if self.guide.guides_any(scene) else _BSDF_SAMPLING
-        self._frozen = FrozenPasses(self, scene, _PassRenderer) if self.freeze and recordable(scene) else None
+        self.frozen_passes = FrozenPasses(self, scene, _PassRenderer) if self.freeze and recordable(scene) else None
 
     def reset_counters(self) -> None:
         self.path_count = mi.UInt32(0)

@@ -20,25 +20,30 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from guiding.methods import method_names
+
 #: Pass sizes: the first passes alike (the learning passes), then a pass size met before, after another one.
 SCHEDULE = (2, 2, 2, 4, 2, 4, 8, 4)
-#: Every kind of device state: SARSA and the memo tables, Monte Carlo's vertex log, the Expected SARSA value,
-#: refined bins, the cells' alias tables, the SD-tree and quadtree forests (whose arrays change size), statistics.
-METHODS = ["brdf", "ours", "mc-hemi_inv", "ours-expected", "ours-plus", "sarsa-sphere_inv", "sdtree",
-           "quadtree-grid"]
+#: Every method: a guide that branches on host state without declaring it in its trace_key fails here. Among them
+#: every kind of device state: SARSA and the memo tables, Monte Carlo's vertex log, the Expected SARSA value, refined
+#: bins, the cells' alias tables, the uniform proposals' rejection loop, the SD-tree and quadtree forests (whose
+#: arrays change size); ``ours`` with its statistics counters.
+METHODS = method_names()
 #: The SD-tree stops training at this pass: its last iteration traces a kernel without recording.
 SDTREE_STOP = 5
 
 
 def _passes(scene, method: str, freeze: bool) -> tuple[list, list, int | None]:
-    """The pass images and update statistics of one render of ``SCHEDULE``, and the frozen recordings made."""
+    """The pass images, update statistics and path counts of one render of ``SCHEDULE``, and the frozen
+    recordings made."""
     from guiding.driver import PassDriver
     from guiding.integrator import GuidedPathIntegrator
     from guiding.methods import make_guide
 
-    integrator = GuidedPathIntegrator(mi.Properties(), guide=make_guide(
-        method, **({"statistics": True} if method == "ours" else {})))
-    integrator.freeze = freeze
+    props = mi.Properties()
+    props["freeze"] = freeze
+    integrator = GuidedPathIntegrator(props, guide=make_guide(method, **({"statistics": True} if method == "ours"
+                                                                         else {})))
     driver = PassDriver(scene, integrator)
     driver.prepare(None)
     images, stats = [], []
@@ -47,8 +52,11 @@ def _passes(scene, method: str, freeze: bool) -> tuple[list, list, int | None]:
             integrator.guide.stop_training()
         outcome = driver.run(seed=index, spp=spp)
         images.append(np.array(outcome.image))
-        stats.append({key: value for key, value in outcome.update.stats.items() if "seconds" not in key})
-    return images, stats, integrator._frozen.recordings if integrator._frozen else None
+        # The update's statistics, and the integrator's counters (inputs of the replay apart from the guide's).
+        stats.append({key: value for key, value in outcome.update.stats.items() if "seconds" not in key}
+                     | {"paths": outcome.paths, "hits": outcome.hits, "rays": outcome.rays})
+    frozen = integrator.frozen_passes
+    return images, stats, frozen.recordings if frozen else None
 
 
 def _compare(scene_name: str) -> dict:
@@ -105,7 +113,7 @@ def test_a_bsdf_outside_the_scene_makes_passes_traced(cornell):
     assert not recordable(cornell)
     integrator = GuidedPathIntegrator(mi.Properties())
     integrator.prepare(cornell)
-    assert integrator._frozen is None
+    assert integrator.frozen_passes is None
     del stray
 
 

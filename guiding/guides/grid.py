@@ -430,7 +430,7 @@ class GridGuide(Guide):
                 entry = vertex.cell * table.bins.count + k
                 refined = table.refinement.sampled(entry, searching)
                 searching &= ~refined
-            bound = dr.gather(mi.Float, table.in_bin_bound, table.in_bin_flat(vertex.pair, k), searching)
+            bound = dr.gather(mi.Float, table.in_bin_bound, table.normal_bin_flat(vertex.pair, k), searching)
 
             def propose(sampler, active):
                 return table.bins.sample(k, sampler.next_2d(active))

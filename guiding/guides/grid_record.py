@@ -69,7 +69,7 @@ REACHABLE_FLOOR = 0.01
 #: drawn; when all are rejected the BSDF's direction is used, with the pair's probability ``in_bin_miss`` of that in
 #: the density. Interior bins accept ~90 % of proposals; bins across the horizon less, and they are rarely drawn.
 IN_BIN_PROPOSALS = 2
-#: Bytes per bin of the visited pairs' alias rows while they are built: the slots, and the temporaries of their
+#: Bytes per slot of the visited pairs' alias rows while they are built: the slots, and the temporaries of their
 #: construction and of the weights.
 ROW_BUILD_BYTES = alias_rows.SLOT_BYTES + alias_rows.BUILD_BYTES + 8
 #: Floats per pair in ``pair_memo`` (:class:`PairMemo`).
@@ -164,12 +164,12 @@ class RadianceRecord:
             self.visited = dr.zeros(mi.UInt32, C * NB)
             self.pair_memo = dr.zeros(mi.Float, PAIR_FIELDS * C * NB)
             self.value = dr.zeros(mi.Float, C * NB)
-            # A row, never read, until a visit.
+            # A row of B slots (no shorter than a pair's row), never read, until a visit.
             self.hemi_alias = dr.zeros(mi.Float, alias_rows.SLOT_FIELDS * B) if needs_hemi_alias else None
             self.cos_integral, self.max_cos = self._cosine_tables()
             self.in_bin_bound, self.in_bin_scale, self.in_bin_misses = (self._in_bin_tables() if needs_in_bin
                                                                         else (None, None, None))
-            self.row_bins, self.row_slots, self.row_size = self._row_layout()
+            self.row_bins, self.row_slots, self.row_length = self._row_layout()
         self.refinement = (BinRefinement(self.bins, C * B, sub_resolution, refine_share, refine_capacity)
                            if sub_resolution > 1 else None)
         self.sub_resolution = sub_resolution
@@ -177,8 +177,8 @@ class RadianceRecord:
         self.refined_stats: dict[str, int] = {}
         # In memory, not literals: the untrained passes' tables are the same kind of input to a frozen pass as the
         # trained ones' (guiding.frozen_pass).
-        dr.make_opaque(self.acc_sum, self.acc_count, self.q, self.policy, *((self.visited, self.pair_memo, self.value, self.hemi_alias)
-                                             if self.needs_pairs else ()))
+        pair_tables = (self.visited, self.pair_memo, self.value, self.hemi_alias) if self.needs_pairs else ()
+        dr.make_opaque(self.acc_sum, self.acc_count, self.q, self.policy, *pair_tables)
 
     # ------------------------------------------------------------------ geometry
     def set_bounds(self, bbox: mi.BoundingBox3f) -> None:
@@ -214,16 +214,16 @@ class RadianceRecord:
                     active: mi.Bool) -> tuple[mi.UInt32, mi.Float]:
         """A bin drawn with ``u`` from row ``row`` of ``hemi_alias`` (the row of pair ``pair``), and its density
         (see the module's docstring)."""
-        slot, density = alias_rows.sample(self.hemi_alias, row, self.row_size, u, active)
-        k = dr.gather(mi.UInt32, self.row_bins, (pair % self.normal_bins.count) * self.row_size + slot, active)
+        slot, density = alias_rows.sample(self.hemi_alias, row, self.row_length, u, active)
+        k = dr.gather(mi.UInt32, self.row_bins, (pair % self.normal_bins.count) * self.row_length + slot, active)
         return k, density
 
     def hemi_density(self, pair: mi.UInt32, row: mi.UInt32, k: mi.UInt32, active: mi.Bool) -> mi.Float:
         """The density of bin ``k`` in row ``row`` of ``hemi_alias`` (the row of pair ``pair``); 0 for a bin the row
         does not hold."""
-        slot = dr.gather(mi.UInt32, self.row_slots, (pair % self.normal_bins.count) * self.bins.count + k, active)
+        slot = dr.gather(mi.UInt32, self.row_slots, self.normal_bin_flat(pair, k), active)
         held = active & (slot != NO_SLOT)
-        return dr.select(held, alias_rows.density(self.hemi_alias, row, self.row_size, slot, held), 0)
+        return dr.select(held, alias_rows.density(self.hemi_alias, row, self.row_length, slot, held), 0)
 
     def cell_density(self, cell: mi.UInt32, k: mi.UInt32, active: mi.Bool) -> mi.Float:
         """The density (per steradian) of bin ``k`` in ``cell``'s row of ``cell_alias``."""
@@ -307,8 +307,8 @@ class RadianceRecord:
     def _row_layout(self) -> tuple[mi.UInt32, mi.UInt32, int]:
         """Which bins the rows of a normal bin hold: those with ``max_cos`` > 0 (above the horizon of some normal of
         the normal bin; any other has weight 0 for every sampler), in order, padded with ``B`` (no bin, weight 0) to
-        the largest count, the row size R. Returns the bins (``nb·R + slot``), the slot of every bin (``nb·B + k``;
-        NO_SLOT where not held) and R."""
+        the largest count, the row length L. Returns the bins (``nb·L + slot``), the slot of every bin (``nb·B + k``;
+        NO_SLOT where not held) and L."""
         import numpy as np
 
         B, NB = self.bins.count, self.normal_bins.count
@@ -322,8 +322,9 @@ class RadianceRecord:
             slots[nb, ks] = np.arange(len(ks))
         return mi.UInt32(bins.ravel()), mi.UInt32(slots.ravel()), size
 
-    def in_bin_flat(self, pair: mi.UInt32, k: mi.UInt32) -> mi.UInt32:
-        """Index of the in-bin tables for bin ``k`` at the normal bin of ``pair``."""
+    def normal_bin_flat(self, pair: mi.UInt32, k: mi.UInt32) -> mi.UInt32:
+        """Index of the per-(normal bin, bin) tables (the in-bin tables, ``row_slots``) for bin ``k`` at the normal
+        bin of ``pair``."""
         return (pair % self.normal_bins.count) * self.bins.count + k
 
     # ------------------------------------------------------------------ learning
@@ -392,8 +393,8 @@ class RadianceRecord:
         count = dr.width(pairs)
         if count == 0:
             return 0
-        R = self.row_size
-        row_bytes = count * R * ROW_BUILD_BYTES
+        length = self.row_length
+        row_bytes = count * length * ROW_BUILD_BYTES
         if self.row_memory_limit is not None and row_bytes > self.row_memory_limit:
             raise GuidingError(f"the grid guide visited {count} (cell, normal bin) pairs: their alias rows need "
                                f"{row_bytes / 2 ** 30:.1f} GiB to build, over the "
@@ -401,21 +402,21 @@ class RadianceRecord:
                                "or raise the limit")
         # One entry per slot of the pairs' rows (_row_layout): N, M and V sum over the bins a row holds, the
         # others adding nothing (their cosines are 0).
-        flat = dr.arange(mi.UInt32, count * R)
-        pair = dr.gather(mi.UInt32, pairs, flat // R)
+        flat = dr.arange(mi.UInt32, count * length)
+        pair = dr.gather(mi.UInt32, pairs, flat // length)
         cell, nb = pair // NB, pair % NB
-        k = dr.gather(mi.UInt32, self.row_bins, nb * R + flat % R)
+        k = dr.gather(mi.UInt32, self.row_bins, nb * length + flat % length)
         held = k < B
         p = dr.gather(mi.Float, self.policy, cell * B + k, held)
         cos_integral = dr.gather(mi.Float, self.cos_integral, nb * B + k, held)
         max_cos = dr.gather(mi.Float, self.max_cos, nb * B + k, held)
 
-        norm = dr.block_reduce(dr.ReduceOp.Add, p * cos_integral, R)
-        bound = dr.block_reduce(dr.ReduceOp.Max, p * max_cos, R)
+        norm = dr.block_reduce(dr.ReduceOp.Add, p * cos_integral, length)
+        bound = dr.block_reduce(dr.ReduceOp.Max, p * max_cos, length)
         row, in_bin_miss = dr.zeros(mi.UInt32, count), dr.zeros(mi.Float, count)
         if self.needs_value:
             q = dr.gather(mi.Float, self.q, cell * B + k, held)
-            dr.scatter(self.value, dr.block_reduce(dr.ReduceOp.Add, q * cos_integral, R), pairs)
+            dr.scatter(self.value, dr.block_reduce(dr.ReduceOp.Add, q * cos_integral, length), pairs)
         if self.needs_hemi_alias:
             if self.needs_in_bin:
                 weight = p * cos_integral
@@ -424,12 +425,12 @@ class RadianceRecord:
                 if self.refinement:     # a refined bin draws its direction without rejection, from its sub-bins
                     refined = self.refinement.sampled(cell * B + k, held)
                     miss, scale = dr.select(refined, 0, miss), dr.select(refined, 1, scale)
-                total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, R), flat // R)
-                in_bin_miss = dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, R)
+                total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, length), flat // length)
+                in_bin_miss = dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, length)
             else:
                 weight = p * dr.maximum(cos_integral, dr.select(max_cos > 0, REACHABLE_FLOOR * self.bins.solid_angle, 0))
                 scale = 1 / self.bins.solid_angle
-            self.hemi_alias = alias_rows.build(weight, R, scale)
+            self.hemi_alias = alias_rows.build(weight, length, scale)
             row = dr.arange(mi.UInt32, count)
         dr.scatter(self.pair_memo, mi.Vector4f(norm, dr.reinterpret_array(mi.Float, row), bound, in_bin_miss), pairs)
         dr.eval(self.pair_memo, self.value, self.hemi_alias)
@@ -449,7 +450,8 @@ class RadianceRecord:
         if needs_cell_alias:
             total += alias_rows.SLOT_BYTES * C * B               # the cells' alias tables
         if needs_memo or needs_hemi_alias or needs_in_bin or needs_value:
-            total += 4 * ((PAIR_FIELDS + 2) * C * NB + (7 if needs_in_bin else 4) * NB * B)   # cosine, in-bin, row layout
+            # cosine and in-bin tables, and the row layout (row_bins at most NB·B)
+            total += 4 * ((PAIR_FIELDS + 2) * C * NB + (7 if needs_in_bin else 4) * NB * B)
             total += alias_rows.SLOT_BYTES * B if needs_hemi_alias else 0                      # placeholder row
         if sub_resolution > 1:
             total += BinRefinement.planned_bytes(C * B, sub_resolution, refine_capacity)

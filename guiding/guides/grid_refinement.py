@@ -85,7 +85,10 @@ class BinRefinement:
         self.pass_targets = pass_sums(size)
         self.probability = dr.full(mi.Float, 1 / self.sub, size)
         self.alias = alias_rows.build(self.probability, self.sub, self._density_scale())
-        dr.eval(self.slot)
+        # In memory, not literals: a frozen pass takes them as the same kind of input before and after the first
+        # refinement (guiding.frozen_pass).
+        dr.make_opaque(self.slot, self.sampling_mask, self.learning_mask, self.entry_of, self.acc_sum,
+                       self.acc_count, self.probability)
 
     @staticmethod
     def planned_bytes(entries: int, resolution: int, capacity: int) -> int:

@@ -74,7 +74,6 @@ class _TreeGuide(Guide):
         self.guide_delta_mixtures = parameters.guide_delta_mixtures
         self._built = False
         self._log: VertexLog | None = None               # how the paths of the pass log their vertices
-        self._pass_paths = mi.UInt32(0)                  # paths recorded since the last update (counted in the kernel)
         self._sampling: DeviceForest | None = None
         self._recording: DeviceForest | None = None
         self._energy_acc = None
@@ -95,8 +94,6 @@ class _TreeGuide(Guide):
         if not self.records():
             return NoPathState()
         self._log = VertexLog(max_depth, with_pdf=True)
-        # Counted on the device, not here: a frozen pass (guiding.frozen_pass) does not run this method.
-        dr.scatter_reduce(dr.ReduceOp.Add, self._pass_paths, 1, dr.zeros(mi.UInt32, size))
         return self._log.new_paths(size)
 
     def guided_mask(self, tree, bsdf: mi.BSDFPtr, active):
@@ -279,6 +276,7 @@ class SDTreeGuide(_TreeGuide):
         self.budget_spp = self.parameters.budget_spp
         self.combine = self.parameters.combine
         self._recording_on = True
+        self._pass_paths = mi.UInt32(0)  # paths recorded since the last update (counted in the kernel)
 
     # ------------------------------------------------------------------------------------ schedule
     def set_budget(self, spp: int | None) -> None:
@@ -335,6 +333,12 @@ class SDTreeGuide(_TreeGuide):
 
     def _locate(self, p, active):
         return stree_locate(self._s_device, p, active)
+
+    def new_paths(self, size: int, max_depth: int):
+        if self.records():
+            # Counted on the device, not here: a frozen pass (guiding.frozen_pass) does not run this method.
+            dr.scatter_reduce(dr.ReduceOp.Add, self._pass_paths, 1, dr.zeros(mi.UInt32, size))
+        return super().new_paths(size, max_depth)
 
     def records(self) -> bool:
         return self._recording_on

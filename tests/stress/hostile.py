@@ -90,8 +90,8 @@ def record_violations(record) -> list[str]:
         problems.append(f"cell policies sum to {sums[np.abs(sums - 1) > B * EPS32][:3]}")
     rows = [("cell_alias", tables.get("cell_alias"), B)]
     if record.needs_pairs and record.hemi_alias is not None and np.count_nonzero(np.array(record.visited)):
-        # one row of row_size slots per visited pair
-        rows.append(("hemi_alias", tables["hemi_alias"], record.row_size))
+        # one row of row_length slots per visited pair
+        rows.append(("hemi_alias", tables["hemi_alias"], record.row_length))
     for name, slots, size in rows:
         if slots is None:
             continue

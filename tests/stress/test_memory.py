@@ -28,22 +28,24 @@ OVERSIZED_METHOD = "ours-S64-D64"
 @pytest.mark.parametrize("rule", RULES)
 def test_planned_table_size_is_what_built_tables_report(rule, figures):
     """The size planned before allocation (`RadianceRecord.planned_bytes`, the fixed tables) bounds what a built
-    record reports, and with one alias row per (cell, normal bin) pair equals it once every pair has been visited,
-    for every sampler and proposal (the per-pair alias tables hold rows for visited pairs only)."""
+    record reports, and once every (cell, normal bin) pair has been visited the record holds one alias row of
+    `row_length` slots per pair in place of its placeholder row, for every sampler and proposal (the per-pair alias
+    tables hold rows for visited pairs only). D = 4: a row holds 30 of the 32 bins."""
     for sampler in SAMPLERS:
         for proposal in PROPOSALS:
-            record = GridGuide(spatial_resolution=2, directional_resolution=3, rule=rule, sampler=sampler,
+            record = GridGuide(spatial_resolution=2, directional_resolution=4, rule=rule, sampler=sampler,
                                proposal=proposal).record_table
-            planned = RadianceRecord.planned_bytes(2, 3, **table_needs(rule, sampler, proposal))
+            planned = RadianceRecord.planned_bytes(2, 4, **table_needs(rule, sampler, proposal))
             fresh = record.memory_bytes()
             assert fresh <= planned, f"{sampler} ({proposal}): planned {planned} bytes, built {fresh}"
             if record.needs_pairs:
                 record.visited = record.visited + 1
             record.update(spp_done=8)
             visited = record.memory_bytes()
-            # every pair's row of row_size slots, in place of the placeholder row of B slots a fresh record holds
+            # every pair's row of row_length slots, in place of the placeholder row of B slots a fresh record holds
             pairs = record.cells * record.normal_bins.count
-            rows = (pairs * record.row_size - record.bins.count) * SLOT_BYTES if record.needs_hemi_alias else 0
+            assert not record.needs_pairs or record.row_length < record.bins.count
+            rows = (pairs * record.row_length - record.bins.count) * SLOT_BYTES if record.needs_hemi_alias else 0
             assert fresh + rows == visited, f"{sampler} ({proposal}): fresh {fresh} + rows {rows} bytes, " \
                                             f"all pairs visited {visited}"
     figures["configurations"] = len(SAMPLERS) * len(PROPOSALS)
@@ -64,7 +66,7 @@ def test_refined_bins_are_planned_and_bounded():
         record.update(spp_done=spp_done)
         stats.append(record.refined_stats)
     assert stats[-1]["refined_bins"] == 5 and stats[-1]["refinements_refused"] == 139
-    rows = (record.cells * record.normal_bins.count - 1) * record.bins.count * SLOT_BYTES
+    rows = (record.cells * record.normal_bins.count * record.row_length - record.bins.count) * SLOT_BYTES
     assert record.memory_bytes() == fresh + rows     # the visited pairs' rows only: the refinement did not grow
 
 
