@@ -105,7 +105,7 @@ class FrozenPasses:
         """One pass of ``spp`` samples per pixel of ``sensor`` with sampler seed ``seed``."""
         integrator = self._integrator()
         guide = integrator.path_guide
-        key = (type(guide), guide.trace_key(), integrator.max_depth, integrator.rr_depth, integrator.rr_min,
+        key = (guide.trace_key(), integrator.max_depth, integrator.rr_depth, integrator.rr_min,
                tuple(sensor.film().crop_size()))     # the paths' width is a literal of the kernel
         return self._render(scene, sensor, dr.opaque(mi.UInt32, seed), spp, key)
 

@@ -191,7 +191,7 @@ def test_empty_dtrees_are_uniform_once_built():
     """Tom94's DTree::sample and pdf: once the trees are built, a D-tree without energy is the uniform density on
     the sphere, mixed with the BSDF like any D-tree."""
     guide = _guide_with(Forest.empty(1))
-    guide._built = True
+    guide.built = True
     adapter = GuideAdapter(guide, position=(0.3, 0.6, 0.2), replay=True)
     ok, messages = chi_square(adapter.sample_func, adapter.pdf_func, sample_dim=3, sample_count=400_000, res=64,
                               ires=33)
@@ -276,7 +276,7 @@ def test_where_the_bsdf_is_sampled_alone(case):
     }[case]
     bsdf = mi.load_dict(bsdf_dict)
     guide = _guide_with(forest, guide)
-    guide._built = built
+    guide.built = built
     bs, weight = guide.sample(None, ReplaySampler(sample), si, mi.BSDFPtr(bsdf), ctx, active)
     ref_bs, ref_weight = bsdf.sample(ctx, si, sample[0], mi.Point2f(sample[1], sample[2]), active)
     assert np.allclose(bs.wo.numpy(), ref_bs.wo.numpy())

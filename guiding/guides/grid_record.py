@@ -313,14 +313,13 @@ class RadianceRecord:
 
         B, NB = self.bins.count, self.normal_bins.count
         held = np.array(self.max_cos).reshape(NB, B) > 0
-        size = max(int(held.sum(axis=1).max()), 1)
-        bins = np.full((NB, size), B, dtype=np.uint32)
+        length = max(int(held.sum(axis=1).max()), 1)
+        nb, k = np.nonzero(held)                        # row by row, bins in order
+        slot = (np.cumsum(held, axis=1) - 1)[nb, k]
+        bins = np.full((NB, length), B, dtype=np.uint32)
         slots = np.full((NB, B), NO_SLOT, dtype=np.uint32)
-        for nb in range(NB):
-            ks = np.flatnonzero(held[nb])
-            bins[nb, :len(ks)] = ks
-            slots[nb, ks] = np.arange(len(ks))
-        return mi.UInt32(bins.ravel()), mi.UInt32(slots.ravel()), size
+        bins[nb, slot], slots[nb, k] = k, slot
+        return mi.UInt32(bins.ravel()), mi.UInt32(slots.ravel()), length
 
     def normal_bin_flat(self, pair: mi.UInt32, k: mi.UInt32) -> mi.UInt32:
         """Index of the per-(normal bin, bin) tables (the in-bin tables, ``row_slots``) for bin ``k`` at the normal

@@ -58,7 +58,7 @@ class _TreeGuide(Guide):
     """What the SD-tree and the quadtree grid share: the D-tree mixture sampler and Monte Carlo recording.
 
     Subclasses provide ``_locate(p, active)`` (the D-tree index of a position), ``self._sampling`` and
-    ``self._recording`` (:class:`DeviceForest`), and their update rule; they set ``self._built`` once their trees
+    ``self._recording`` (:class:`DeviceForest`), and their update rule; they set ``built`` once their trees
     have been built from recorded data (from then on, with ``uniform_empty_dtrees``, a D-tree without energy is
     sampled, uniformly).
     """
@@ -72,7 +72,7 @@ class _TreeGuide(Guide):
         self.max_nodes = parameters.max_nodes
         self.uniform_empty_dtrees = parameters.uniform_empty_dtrees
         self.guide_delta_mixtures = parameters.guide_delta_mixtures
-        self._built = False
+        self.built = False
         self._log: VertexLog | None = None               # how the paths of the pass log their vertices
         self._sampling: DeviceForest | None = None
         self._recording: DeviceForest | None = None
@@ -83,8 +83,17 @@ class _TreeGuide(Guide):
     def records(self) -> bool:
         return True
 
-    def trace_key(self) -> tuple:
-        return self.records(), self._built
+    @property
+    def built(self) -> bool:
+        """Whether the trees have been built from recorded data."""
+        return self._built
+
+    @built.setter
+    def built(self, value: bool) -> None:
+        self._built = value
+        # A device flag, not a literal of the trace: the kernel reads it as a parameter, so the first build neither
+        # recompiles the render nor leaves a frozen pass (guiding.frozen_pass) with the flag of its recording.
+        self._empty_dtrees_sampled = dr.opaque(mi.Bool, self.uniform_empty_dtrees and value)
 
     # -------------------------------------------------------------------------------------- device side
     def _locate(self, p, active):
@@ -100,10 +109,8 @@ class _TreeGuide(Guide):
         """Lanes that mix in the D-tree: a BSDF with a smooth lobe (without ``guide_delta_mixtures``: a BSDF
         without any delta lobe), and a D-tree that has seen energy (with ``uniform_empty_dtrees``, once the trees
         are built, any D-tree: one without energy is uniform, its quadrant probabilities 1/4 each)."""
-        # Opaque: the kernel takes the flag as a parameter, so the first build does not recompile the render.
-        empty_guided = dr.opaque(mi.Bool, self.uniform_empty_dtrees and self._built)
         guidable = self.guides(bsdf, active)
-        return guidable & (dr.gather(mi.Bool, self._sampling.has_energy, tree, guidable) | empty_guided)
+        return guidable & (dr.gather(mi.Bool, self._sampling.has_energy, tree, guidable) | self._empty_dtrees_sampled)
 
     def guides(self, bsdf: mi.BSDFPtr, active) -> mi.Bool:
         """Lanes whose BSDF has a lobe the D-tree may guide (the BSDF flags alone)."""
@@ -326,7 +333,7 @@ class SDTreeGuide(_TreeGuide):
         self._recording = DeviceForest(self._recording_host)
         self._reset_accumulators()
         self._recording_on = True
-        self._built = False
+        self.built = False
         self.iteration = 0
         self._start_iteration(0)
         self._last_refine = {}
@@ -379,7 +386,7 @@ class SDTreeGuide(_TreeGuide):
         self._sampling = DeviceForest(self._sampling_host)
         self._recording = DeviceForest(self._recording_host)
         self._reset_accumulators()
-        self._built = True
+        self.built = True
         dr.sync_thread()
         self._last_refine = {"refine_seconds": time.perf_counter() - start, "refine_host_seconds": host_seconds,
                              "stree_threshold": threshold, "paths_recorded": self._iteration_paths,
@@ -436,7 +443,7 @@ class QuadtreeGridGuide(_TreeGuide):
                                                keep_energy=True, max_nodes=self.max_nodes)
         self._sampling = self._recording = DeviceForest(self._forest)
         self._reset_accumulators()
-        self._built = False
+        self.built = False
 
     def _locate(self, p, active):
         return self._cells.cell(p)
@@ -453,7 +460,7 @@ class QuadtreeGridGuide(_TreeGuide):
         host_seconds = time.perf_counter() - start
         self._sampling = self._recording = DeviceForest(self._forest)
         self._reset_accumulators()
-        self._built = True
+        self.built = True
         dr.sync_thread()
         stats = {"refine_seconds": time.perf_counter() - start,
                  "refine_host_seconds": host_seconds, "energy_recorded": float(energy.sum()), **self.sanitised}
