@@ -51,8 +51,9 @@ def _grid(**parameters) -> Method:
 
 #: The paper's configurations (S = 8, D = 16), the baselines, and every rule × sampler. ``sdtree`` is Tom94's
 #: SD-tree with Müller 2019's inverse-variance combination, ``sdtree-last`` the same with the 2017 paper's final image
-#: (its last iteration alone). ``ours-uniform-proposals``
-#: is ``ours`` with the paper's rejection loop (the same target, about five times the proposals; see GridGuide).
+#: (its last iteration alone), ``sdtree-learned`` the same with a BSDF share learned per D-tree (Müller 2019's
+#: improved preset; :mod:`guiding.guides.bsdf_fraction`). ``ours-uniform-proposals`` is ``ours`` with the paper's
+#: rejection loop (the same target, about five times the proposals; see GridGuide).
 #: ``{rule}-hemi_inv-pure`` is the paper's hemi_inv without the BSDF share of ours (heavy-tailed; not in the tables).
 #: ``ours-plus`` (beyond the paper, in progress): ``ours`` guiding every smooth reflecting BSDF, with a BSDF share of
 #: at least ``smooth_bsdf_share`` where the BSDF is not purely diffuse, and its brightest bins refined into 8 × 8
@@ -61,6 +62,7 @@ METHODS: dict[str, Method] = {
     "brdf": Method(".guides.bsdf", "BSDFGuide"),
     "sdtree": Method(".guides.sdtree", "SDTreeGuide", SDTreeParameters()),
     "sdtree-last": Method(".guides.sdtree", "SDTreeGuide", SDTreeParameters(combine="last")),
+    "sdtree-learned": Method(".guides.sdtree", "SDTreeGuide", SDTreeParameters(learn_bsdf_fraction=True)),
     "quadtree-grid": Method(".guides.sdtree", "QuadtreeGridGuide", QuadtreeGridParameters()),
     "ours": _grid(rule="sarsa", sampler="hemi_rej_plus"),
     "ours-uniform-proposals": _grid(rule="sarsa", sampler="hemi_rej_plus", proposal="uniform"),

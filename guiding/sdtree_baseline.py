@@ -1,6 +1,6 @@
 """The SD-tree baseline's measurements (``python -m guiding sdtree-baseline``): equal-spp errors of the SD-tree in
-its previous and its present setup beside BSDF sampling, the quadtree grid and ours, and the S-tree threshold rule
-at several image sizes.
+its previous and its present setup beside BSDF sampling, the quadtree grid and ours, the S-tree threshold rule
+at several image sizes, and the learned BSDF share (``sdtree-learned``) against the fixed one on the shared scenes.
 
 Every render is the progressive renderer's (:func:`guiding.render.render`, first passes of 8 spp, max depth 16), with the
 seeds of the experiment harness; the error is the paper's tone-mapped MAE against a reference rendered once by
@@ -65,6 +65,10 @@ VARIANTS = (
     Variant("quadtree-grid", "quadtree-grid"),
     Variant("ours", "ours"),
 )
+#: The rows of the learned-share table (Müller 2019's learned BSDF share against the fixed one).
+SHARE_VARIANTS = (Variant("brdf", "brdf"), Variant("sdtree", "sdtree"), Variant("sdtree-learned", "sdtree-learned"))
+#: Its scenes, at the resolutions of the paper experiments (config/paper.yaml).
+SHARE_SCENES = (("cornell-box", 0.125), ("veach-ajar", 0.0625), ("staircase2", 0.0625), ("living-room", 0.0625))
 #: The S-tree constants of the threshold study: the default c = 12000, a quarter of it to four times it.
 THRESHOLD_CONSTANTS = (3000.0, 6000.0, 12000.0, 24000.0, 48000.0)
 
@@ -202,3 +206,19 @@ def threshold_table(scales: tuple[float, ...] = (0.0625, 0.125, 0.25), scene_nam
         rows = [({"resolution": resolution, "reference_spp": ref_spp, "c": c}, "sdtree", {"c": c}) for c in constants]
         records += _runs(scene, reference, rows, spp, seeds)
     return _summary(records, ["resolution", "reference_spp", "c"])
+
+
+def scenes_table(scenes=SHARE_SCENES, spp: int = 1024, seeds: tuple[int, ...] = (0, 1, 2),
+                 reference_spp: int = 32768, cache: Path = Path("results"), variants=SHARE_VARIANTS):
+    """:func:`equal_spp_table` on each of ``scenes`` ((name, scale) pairs, default :data:`SHARE_SCENES`) with
+    ``variants`` (default :data:`SHARE_VARIANTS`), one table with a ``scene`` column; and every run."""
+    summaries, runs = [], []
+    for scene_name, scale in scenes:
+        summary, scene_runs = equal_spp_table(scene_name, scale, spp, seeds, reference_spp, cache, variants)
+        summaries.append(summary.assign(scene=scene_name, scale=scale))
+        runs.append(scene_runs.assign(scene=scene_name, scale=scale))
+    import pandas as pd
+
+    first = ["scene", "scale"]
+    summary, runs = pd.concat(summaries, ignore_index=True), pd.concat(runs, ignore_index=True)
+    return summary[first + [c for c in summary if c not in first]], runs[first + [c for c in runs if c not in first]]

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from mitsuba.chi2 import LineDomain
 
+from guiding.guides.bsdf_fraction import LearnedBsdfFraction
 from guiding.guides.dtree import SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
 from guiding.guides.sdtree import QuadtreeGridGuide, SDTreeGuide
 from guiding.guides.stree import STree
@@ -159,12 +160,16 @@ def _guide_with(forest: Forest, guide=None) -> SDTreeGuide:
     return guide
 
 
+@pytest.mark.parametrize("share", [None, 0.3], ids=["fixed share", "learned share"])
 @pytest.mark.parametrize("bsdf_dict", [{"type": "diffuse", "reflectance": 0.5},
                                        {"type": "twosided", "material": {"type": "diffuse", "reflectance": 0.5}}])
-def test_bsdf_mixture_matches_density_on_a_diffuse_surface(bsdf_dict):
+def test_bsdf_mixture_matches_density_on_a_diffuse_surface(bsdf_dict, share):
+    """The mixture with the BSDF share ``bsdf_fraction`` (0.5), or with the D-tree's learned share."""
     rng = np.random.default_rng(7)
     forest = nested_forest([random_tree(rng, 4, 0.6, zeros=0.2)])
     guide = _guide_with(forest)
+    if share is not None:
+        guide._fraction = LearnedBsdfFraction(1, share)
     bsdf = mi.load_dict(bsdf_dict)
     adapter = GuideAdapter(guide, position=(0.3, 0.6, 0.2), bsdf=bsdf, replay=True)
     ctx = mi.BSDFContext()
@@ -412,11 +417,11 @@ def test_guided_renders_match_mitsuba_path_on_door_ajar(door, door_reference, me
         assert stats["iteration"] >= 3 and stats["stree_leaves"] > 1
 
 
-@pytest.mark.parametrize("method", GUIDES)
+@pytest.mark.parametrize("method", [*GUIDES, "sdtree-learned"])
 def test_guided_renders_match_mitsuba_path_on_cornell(cornell, cornell_reference, method):
     """A scene where guided passes are not firefly-ridden: a tighter check (standard error < 1 % of the mean)."""
-    ours = pass_means(cornell, GuidedPathIntegrator(guide=GUIDES[method]()), passes=CORNELL_PASSES, spp=SPP,
-                      seed=1)
+    guide = GUIDES[method]() if method in GUIDES else SDTreeGuide(base_spp=16, learn_bsdf_fraction=True)
+    ours = pass_means(cornell, GuidedPathIntegrator(guide=guide), passes=CORNELL_PASSES, spp=SPP, seed=1)
     reference = cornell_reference
     z = z_scores(ours, reference)
     assert (z < Z_LIMIT).all(), f"z-scores {z}, means {ours.mean(0)} vs {reference.mean(0)}"

@@ -182,6 +182,9 @@ class TreeParameters:
         the D-tree, its delta lobe reached by BSDF sampling alone (Tom94's ``sampleMat``); False: every BSDF with a
         delta lobe samples the BSDF alone (default False; the SD-tree's default is True). Purely delta BSDFs are
         never guided.
+      learn_bsdf_fraction: each D-tree learns its own BSDF share, starting at ``bsdf_fraction``, by minimising the
+        KL divergence from the product f·cos·L to the mixture (Müller 2019; :mod:`~guiding.guides.bsdf_fraction`);
+        False: ``bsdf_fraction`` everywhere (default False).
     """
 
     rho: float = 0.01
@@ -190,6 +193,7 @@ class TreeParameters:
     max_nodes: int | None = None
     uniform_empty_dtrees: bool = False
     guide_delta_mixtures: bool = False
+    learn_bsdf_fraction: bool = False
 
     def __post_init__(self):
         _check(0 < self.rho <= 1, f"rho must be in (0, 1], got {self.rho}")

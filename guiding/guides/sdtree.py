@@ -31,6 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 from .base import Guide, NoPathState, UpdateResult, rgb_mean
+from .bsdf_fraction import LearnedBsdfFraction
 from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
 from .grid_cells import GridCells
 from .parameters import PAPER_SPP_UNIT, QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
@@ -47,6 +48,9 @@ class TreeVertex:
 
     tree: mi.UInt32
     slot: mi.UInt32 = None
+    #: (p_bsdf − p_tree)/m at the sampled direction where the mixture drew it, else 0: what the learned BSDF share
+    #: needs of the vertex (:mod:`~guiding.guides.bsdf_fraction`; None unless it is learned).
+    score: mi.Float = None
 
 
 def _capacity(n: int) -> int:
@@ -72,6 +76,8 @@ class _TreeGuide(Guide):
         self.max_nodes = parameters.max_nodes
         self.uniform_empty_dtrees = parameters.uniform_empty_dtrees
         self.guide_delta_mixtures = parameters.guide_delta_mixtures
+        self.learn_bsdf_fraction = parameters.learn_bsdf_fraction
+        self._fraction: LearnedBsdfFraction | None = None   # the learned shares (made by prepare)
         self.built = False
         self._log: VertexLog | None = None               # how the paths of the pass log their vertices
         self._sampling: DeviceForest | None = None
@@ -102,8 +108,12 @@ class _TreeGuide(Guide):
     def new_paths(self, size: int, max_depth: int):
         if not self.records():
             return NoPathState()
-        self._log = VertexLog(max_depth, with_pdf=True)
+        self._log = VertexLog(max_depth, ("pdf", "score") if self._fraction else ("pdf",))
         return self._log.new_paths(size)
+
+    def _share(self, tree: mi.UInt32, active: mi.Bool):
+        """The BSDF share of the mixture at D-trees ``tree``: learned, or ``bsdf_fraction``."""
+        return self._fraction.share(tree, active) if self._fraction else self.bsdf_fraction
 
     def guided_mask(self, tree, bsdf: mi.BSDFPtr, active):
         """Lanes that mix in the D-tree: a BSDF with a smooth lobe (without ``guide_delta_mixtures``: a BSDF
@@ -128,7 +138,8 @@ class _TreeGuide(Guide):
         wo_world = si.to_world(wo)
         p_bsdf = bsdf.pdf(bsdf_ctx, si, wo, active)
         p_tree = self._sampling.pdf_dir(tree, wo_world, guided)
-        return dr.select(guided, self.bsdf_fraction * p_bsdf + (1 - self.bsdf_fraction) * p_tree, p_bsdf)
+        share = self._share(tree, guided)
+        return dr.select(guided, share * p_bsdf + (1 - share) * p_tree, p_bsdf)
 
     def locate(self, si, bsdf, active):
         """The vertex's D-tree (its S-tree leaf, or grid cell), in the lanes sampled from a D-tree or recorded (a
@@ -146,21 +157,25 @@ class _TreeGuide(Guide):
         guidable = self.guides(bsdf, active)
         tree = None if vertex is None else vertex.tree
         if guidable:
-            bs, weight, slot = self._mixture_sample(si, bsdf, bsdf_ctx, s1, s2, guidable, tree)
+            bs, weight, slot, score = self._mixture_sample(si, bsdf, bsdf_ctx, s1, s2, guidable, tree)
         else:
             bs, weight = bsdf.sample(bsdf_ctx, si, s1, s2, active & ~guidable)
-            slot = mi.UInt32(NO_RECORD)
+            slot, score = mi.UInt32(NO_RECORD), mi.Float(0)
         if dr.hint(vertex is not None and self._recording is self._sampling, mode="scalar"):
             vertex.slot = slot
+        if dr.hint(vertex is not None and self._fraction is not None, mode="scalar"):
+            vertex.score = score
         return bs, weight
 
     def _mixture_sample(self, si, bsdf, bsdf_ctx, s1, s2, active, tree=None):
         """One sample of the mixture of BSDF sampling and the vertex's D-tree ``tree`` (None: located here) for the
         samples ``s1``, ``s2`` (BSDF sampling alone where the D-tree holds no energy): the sample, its weight, and
-        the leaf slot of its direction in the sampling D-tree (NO_RECORD where the tree was not descended)."""
+        the leaf slot of its direction in the sampling D-tree (NO_RECORD where the tree was not descended), and its
+        score (:class:`TreeVertex`)."""
         tree = self._locate(si.p, active) if tree is None else tree
         guided = self.guided_mask(tree, bsdf, active)
-        frac = dr.select(guided, self.bsdf_fraction, 1.0)
+        share = self._share(tree, guided)
+        frac = dr.select(guided, share, 1.0)
         use_bsdf = s1 < frac
         bs, bsdf_weight = bsdf.sample(bsdf_ctx, si, dr.minimum(s1 / frac, ONE_MINUS_EPS), s2, active & use_bsdf)
         # Only BSDF sampling reaches a delta lobe: its weight is the BSDF's over the BSDF share (Tom94's sampleMat).
@@ -175,16 +190,17 @@ class _TreeGuide(Guide):
         wo_world = dr.select(use_tree, d_tree, bsdf_dir)
         wo = si.to_local(wo_world)
         value, p_bsdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
-        p_mix = self.bsdf_fraction * p_bsdf + (1 - self.bsdf_fraction) * p_tree
+        p_mix = share * p_bsdf + (1 - share) * p_tree
         mix_weight = dr.select(p_mix > 0, value / p_mix, 0)
 
         bs.wo = dr.select(use_tree, wo, bs.wo)
-        bs.pdf = dr.select(delta, self.bsdf_fraction * bs.pdf, dr.select(guided, p_mix, bs.pdf))
+        bs.pdf = dr.select(delta, share * bs.pdf, dr.select(guided, p_mix, bs.pdf))
         bs.eta = dr.select(use_tree, 1.0, bs.eta)
         bs.sampled_type = dr.select(use_tree, mi.UInt32(+mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
         bs.sampled_component = dr.select(use_tree, mi.UInt32(0), bs.sampled_component)
-        weight = dr.select(delta, bsdf_weight / self.bsdf_fraction, dr.select(guided, mix_weight, bsdf_weight))
-        return bs, weight, dr.select(guided, slot, NO_RECORD)
+        weight = dr.select(delta, bsdf_weight / share, dr.select(guided, mix_weight, bsdf_weight))
+        score = dr.select(guided & ~delta & (p_mix > 0), (p_bsdf - p_tree) / p_mix, 0)
+        return bs, weight, dr.select(guided, slot, NO_RECORD), score
 
     def record(self, state, si, emitted, bs, weight, continues, active, vertex=None):
         # The direction sampled here was traced: record it (delta directions carry no density).
@@ -195,8 +211,11 @@ class _TreeGuide(Guide):
         # recording tree elsewhere.
         slot = known_or_found(None if vertex is None else vertex.slot, traced,
                               lambda lanes: self._recording.slot_of_dir(tree, si.to_world(bs.wo), lanes))
+        scores = {}
+        if self._fraction:
+            scores["score"] = mi.Float(0) if vertex is None or vertex.score is None else vertex.score
         return self._log.append(state, emitted, weight, continues, dr.select(traced, slot, NO_RECORD), active,
-                                pdf=bs.pdf)
+                                pdf=bs.pdf, **scores)
 
     def finish_paths(self, state) -> None:
         walk_backward(state, self._splat)
@@ -222,6 +241,8 @@ class _TreeGuide(Guide):
                           mode=mode)
         tree = dr.gather(mi.UInt32, self._recording.tree_of_node, slot // 4, recorded)
         dr.scatter_reduce(dr.ReduceOp.Add, self._count_acc, mi.Float(1), tree, recorded, mode=mode)
+        if self._fraction:
+            self._fraction.record(tree, rgb_mean(entry.weight * L), entry.score, recorded & (entry.score != 0))
 
     def _pull(self) -> tuple[np.ndarray, np.ndarray]:
         """The recorded leaf energies and vertex counts. Entries that are NaN, ±Inf or negative (a float32 sum
@@ -331,6 +352,7 @@ class SDTreeGuide(_TreeGuide):
                                                        keep_energy=False, max_nodes=self.max_nodes)
         self._sampling = DeviceForest(self._sampling_host)
         self._recording = DeviceForest(self._recording_host)
+        self._fraction = LearnedBsdfFraction(1, self.bsdf_fraction) if self.learn_bsdf_fraction else None
         self._reset_accumulators()
         self._recording_on = True
         self.built = False
@@ -361,6 +383,8 @@ class SDTreeGuide(_TreeGuide):
         self._pass_paths = mi.UInt32(0)
         stats = {"refine_seconds": 0.0}
         iteration_done = recorded and not self.is_final_iteration and spp_done >= self.iteration_end_spp
+        if recorded and self._fraction:
+            stats.update(self._fraction.step())
         if iteration_done:
             stats.update(self._refine())
             self.iteration += 1
@@ -378,6 +402,8 @@ class SDTreeGuide(_TreeGuide):
         built.deposit(energy)
         threshold = self.stree_threshold(self._iteration_paths)
         sources = self.stree.refine(counts, threshold)
+        if self._fraction:
+            self._fraction.remap(sources)
         self._sampling_host = built.rebuild(sources, SPLIT_COPY)
         self._recording_host = built.rebuild(sources, SPLIT_REFINE, self.rho, self.dtree_max_depth,
                                              keep_energy=False, max_nodes=self.max_nodes)
@@ -442,6 +468,7 @@ class QuadtreeGridGuide(_TreeGuide):
         self._forest = Forest.empty(n).rebuild(np.arange(n), SPLIT_GROW, self.rho, self.dtree_max_depth,
                                                keep_energy=True, max_nodes=self.max_nodes)
         self._sampling = self._recording = DeviceForest(self._forest)
+        self._fraction = LearnedBsdfFraction(n, self.bsdf_fraction) if self.learn_bsdf_fraction else None
         self._reset_accumulators()
         self.built = False
 
@@ -464,6 +491,8 @@ class QuadtreeGridGuide(_TreeGuide):
         dr.sync_thread()
         stats = {"refine_seconds": time.perf_counter() - start,
                  "refine_host_seconds": host_seconds, "energy_recorded": float(energy.sum()), **self.sanitised}
+        if self._fraction:
+            stats.update(self._fraction.step())
         stats.update(self._structure_stats())
         return UpdateResult(stats)
 
