@@ -212,13 +212,13 @@ def scenes_table(scenes=SHARE_SCENES, spp: int = 1024, seeds: tuple[int, ...] = 
                  reference_spp: int = 32768, cache: Path = Path("results"), variants=SHARE_VARIANTS):
     """:func:`equal_spp_table` on each of ``scenes`` ((name, scale) pairs, default :data:`SHARE_SCENES`) with
     ``variants`` (default :data:`SHARE_VARIANTS`), one table with a ``scene`` column; and every run."""
+    import pandas as pd
+
     summaries, runs = [], []
     for scene_name, scale in scenes:
         summary, scene_runs = equal_spp_table(scene_name, scale, spp, seeds, reference_spp, cache, variants)
         summaries.append(summary.assign(scene=scene_name, scale=scale))
         runs.append(scene_runs.assign(scene=scene_name, scale=scale))
-    import pandas as pd
-
     first = ["scene", "scale"]
     summary, runs = pd.concat(summaries, ignore_index=True), pd.concat(runs, ignore_index=True)
     return summary[first + [c for c in summary if c not in first]], runs[first + [c for c in runs if c not in first]]

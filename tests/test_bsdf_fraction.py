@@ -19,24 +19,27 @@ def _record(fraction, tree, c, s):
 
 
 def test_newton_step_by_hand():
-    """Tree 0: G = 64·1·0.5 = 32, H = 64·1·0.25 = 16, a step of G/H = 2 clipped to MAX_STEP. Tree 1: G = 0.
-    Tree 2: too few vertices, it keeps its share and its sums, and steps once the next pass brings enough."""
+    """N = MIN_VERTICES vertices per tree. Tree 0: G = N·1·0.5, H = N·1·0.25, a step of G/H = 2, clipped to
+    MAX_STEP. Tree 1: G = 0, a step of 0. Tree 2: too few vertices; it keeps its share and its sums, and steps once
+    the next pass brings enough. Vertices with c = 0 count for nothing."""
+    n = MIN_VERTICES
     fraction = LearnedBsdfFraction(3, 0.5)
-    _record(fraction, [0] * MIN_VERTICES, 1.0, 0.5)
-    _record(fraction, [1] * MIN_VERTICES, 1.0, np.resize([0.5, -0.5], MIN_VERTICES))   # G = 0: a step of 0
-    _record(fraction, [2] * (MIN_VERTICES - 1), 2.0, -0.25)
+    _record(fraction, [0] * n, 1.0, 0.5)
+    _record(fraction, [1] * n, 1.0, np.resize([0.5, -0.5], n))
+    _record(fraction, [2] * (n - 1), 2.0, -0.25)
+    _record(fraction, [2] * n, 0.0, -0.25)
     stats = fraction.step()
     assert fraction.host == pytest.approx([0.5 + MAX_STEP, 0.5, 0.5])
     assert stats["bsdf_fraction_steps"] == 2
-    _record(fraction, [2], 2.0, -0.25)            # G = 64·2·(−0.25) = −32, H = 64·2·0.0625 = 8: −4, clipped
+    _record(fraction, [2], 2.0, -0.25)            # G = N·2·(−0.25), H = N·2·0.0625: −4, clipped
     fraction.step()
     assert fraction.host == pytest.approx([0.5 + MAX_STEP, 0.5, 0.5 - MAX_STEP])
-    _record(fraction, [1] * MIN_VERTICES, 3.0, 0.2)    # G = 64·0.6, H = 64·0.12: +5, clipped
-    _record(fraction, [2] * MIN_VERTICES, 0.5, -0.4)   # G = −64·0.2, H = 64·0.08: −2.5, clipped to the floor
+    _record(fraction, [1] * n, 3.0, 0.2)          # G = N·0.6, H = N·0.12: +5, clipped
+    _record(fraction, [2] * n, 0.5, -0.4)         # G = −N·0.2, H = N·0.08: −2.5, clipped to the floor
     fraction.step()
     assert fraction.host == pytest.approx([0.5 + MAX_STEP, 0.5 + MAX_STEP, MIN_SHARE])
     for _ in range(3):
-        _record(fraction, [0] * MIN_VERTICES, 1.0, 0.5)
+        _record(fraction, [0] * n, 1.0, 0.5)
         fraction.step()
     assert fraction.host[0] == pytest.approx(MAX_SHARE)
 
@@ -97,14 +100,14 @@ def _floor_scene(emitter: dict) -> mi.Scene:
         "type": "scene",
         "sensor": {"type": "perspective", "fov": 40,
                    "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 48, "height": 48, "rfilter": {"type": "box"}}},
+                   "film": {"type": "hdrfilm", "width": 64, "height": 64, "rfilter": {"type": "box"}}},
         "floor": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": 0.5},
                   "to_world": mi.ScalarTransform4f().scale([2, 2, 1])},
         "light": emitter})
 
 
-SMALL_LIGHT = {"type": "rectangle", "emitter": {"type": "area", "radiance": 400.0},
-               "to_world": mi.ScalarTransform4f().translate([0.5, 0, 3]).scale(0.1)
+SMALL_LIGHT = {"type": "rectangle", "emitter": {"type": "area", "radiance": 40.0},
+               "to_world": mi.ScalarTransform4f().translate([0.5, 0, 3]).scale(0.3)
                @ mi.ScalarTransform4f().rotate([1, 0, 0], 180)}
 
 

@@ -9,8 +9,10 @@ estimated from the recorded vertices ``i`` is
 
 with ``α₀`` the share the pass sampled with and ``w_i`` the vertex's logged weight (Russian roulette's ``1/q``
 included, and 0 where roulette ended the path, which keeps the sum unbiased). ℒ is convex in α: with
-``s_i = (p_bsdf − p_tree)/m_{α₀}`` at the sampled direction, its derivative at α₀ is ``−G = −Σ c_i·s_i`` and its
-second derivative ``H = Σ c_i·s_i²``. Each D-tree sums G and H over a pass (in the render kernel, during the
+``s_i = ∂ log m_α/∂α = (p_bsdf − p_tree)/m_{α₀}`` at the sampled direction (``1/α₀`` at a direction of a BSDF's
+delta lobe, which only the BSDF share reaches: there ``m_α`` is α times the lobe's probability), its derivative at
+α₀ is ``−G = −Σ c_i·s_i`` and its second derivative ``H = Σ c_i·s_i²``. Vertices with ``c = 0`` add nothing, and
+count for nothing (Tom94's ``product > 0``). Each D-tree sums G and H over a pass (in the render kernel, during the
 backward walk) and, after the pass, takes one Newton step ``α ← α₀ + G/H``.
 
 Tom94 takes an Adam step per recorded vertex, one vertex after another under a lock; a SIMD path loop records
@@ -26,12 +28,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .dtree import padded
-from .parameters import MIN_BSDF_SHARE
+from .dtree import capacity, padded
+from .parameters import LEARNED_SHARE_RANGE
 
-#: Least and largest learned share.
-MIN_SHARE = MIN_BSDF_SHARE
-MAX_SHARE = 0.95
+MIN_SHARE, MAX_SHARE = LEARNED_SHARE_RANGE
 #: Most a share moves in one step.
 MAX_STEP = 0.25
 #: Least vertices a tree must have recorded since its last step to step again: c is heavy-tailed (a path that finds
@@ -54,8 +54,10 @@ class LearnedBsdfFraction:
         """The shares to the device, with ``sums`` (None: cleared): count, G and H per tree, and a fourth float
         that keeps a tree's three in one packet scatter per vertex."""
         self.shares = mi.Float(padded(self.host.astype(np.float32)))
-        self._sums = mi.Float(padded(sums.astype(np.float32)) if sums is not None
-                              else padded(np.zeros(4 * len(self.host), dtype=np.float32)))
+        table = np.zeros(capacity(4 * len(self.host)), dtype=np.float32)
+        if sums is not None:
+            table[: len(sums)] = sums
+        self._sums = mi.Float(padded(table))
         dr.eval(self.shares, self._sums)
 
     # ------------------------------------------------------------------------------------- device side
@@ -67,21 +69,25 @@ class LearnedBsdfFraction:
         """Add a recorded vertex of D-tree ``tree`` to its sums: ``c`` = mean(w·L) and ``s`` = (p_bsdf − p_tree)/m
         at its sampled direction (see the module docstring)."""
         cs = c * s
-        usable = active & dr.isfinite(cs * s)
+        usable = active & (c > 0) & dr.isfinite(cs * s)
         dr.scatter_reduce(dr.ReduceOp.Add, self._sums, mi.Vector4f(1, cs, cs * s, 0), tree, usable,
                           mode=dr.ReduceMode.Local)
 
     # --------------------------------------------------------------------------------------- host side
     def step(self) -> dict:
-        """One Newton step of every tree whose sums hold at least :data:`MIN_VERTICES` vertices; their sums are
-        cleared, the others' kept for the next pass (their share, and so what the sums were taken at, has not
-        changed). Returns the shares' mean and range and the number of trees that stepped."""
-        sums = self._sums.numpy().reshape(-1, 4).astype(np.float64)
-        count, g, h = (sums[: len(self.host), i] for i in range(3))
-        steps = (count >= MIN_VERTICES) & (h > 0) & np.isfinite(g) & np.isfinite(h)
+        """One Newton step of every tree whose sums hold at least :data:`MIN_VERTICES` vertices (and are finite);
+        their sums are cleared, the others' kept for the next pass: their share, which the sums were taken at, has
+        not changed (nor, in the SD-tree, their D-tree until the next refinement, which clears every sum; the
+        quadtree grid's D-trees grow after every pass, and its kept sums mix the densities of a few passes).
+        Returns the shares' mean and range and the number of trees that stepped."""
+        n = len(self.host)
+        sums = self._sums.numpy()[: 4 * n].reshape(n, 4).astype(np.float64)
+        count, g, h = sums[:, 0], sums[:, 1], sums[:, 2]
+        full = count >= MIN_VERTICES
+        steps = full & (h > 0) & np.isfinite(g) & np.isfinite(h)
         move = np.clip(np.divide(g, h, out=np.zeros_like(g), where=steps), -MAX_STEP, MAX_STEP)
         self.host = np.clip(self.host + np.where(steps, move, 0), MIN_SHARE, MAX_SHARE)
-        sums[: len(self.host)][steps] = 0
+        sums[full] = 0
         self._upload(sums.ravel())
         return {"bsdf_fraction_mean": float(self.host.mean()), "bsdf_fraction_min": float(self.host.min()),
                 "bsdf_fraction_max": float(self.host.max()), "bsdf_fraction_steps": int(steps.sum())}

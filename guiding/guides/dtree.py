@@ -217,6 +217,12 @@ class Forest:
 # ===================================================================================================================
 #  D-trees on the device
 # ===================================================================================================================
+def capacity(n: int) -> int:
+    """The smallest power of two ≥ ``n``, at least 2: the size of a device accumulator for ``n`` entries (a kernel
+    that scatters into it is compiled for its size, and this keeps small changes of ``n`` from recompiling it)."""
+    return 1 << max(int(n) - 1, 1).bit_length()
+
+
 def padded(a: np.ndarray, minimum: int = 2) -> np.ndarray:
     """``a`` with zeros appended up to ``minimum`` entries, in 64-byte aligned memory, for uploading as a device
     table (D-trees, S-tree). Arrays of one element may be traced differently from larger ones, so every table keeps

@@ -36,6 +36,9 @@ PROFILE_BSDF_PATHS = "bsdf_paths"
 #: and 1.9 at 0.05). At 0.1 (10·ρ) the products of several such bounces were still heavy-tailed: on door-ajar one of
 #: 24 passes of sarsa-hemi_rej came out at 2.4× the mean, doubling the pass means' standard error.
 MIN_BSDF_SHARE = 0.2
+#: The range of a BSDF share the tree guides learn (``learn_bsdf_fraction``; :mod:`~guiding.guides.bsdf_fraction`):
+#: the floor is the grid's ``min_bsdf_share``, for the same bound on the weights.
+LEARNED_SHARE_RANGE = (MIN_BSDF_SHARE, 0.95)
 #: How a renderer makes the final image of a guide whose learning runs in iterations (the SD-tree's doubling
 #: schedule; :mod:`guiding.render`): ``last``, the last iteration alone (Müller et al. 2017's paper); ``automatic``,
 #: the last iteration alone, training stopped early once the variance extrapolated to the end of the budget stops
@@ -183,8 +186,8 @@ class TreeParameters:
         delta lobe samples the BSDF alone (default False; the SD-tree's default is True). Purely delta BSDFs are
         never guided.
       learn_bsdf_fraction: each D-tree learns its own BSDF share, starting at ``bsdf_fraction``, by minimising the
-        KL divergence from the product f·cos·L to the mixture (Müller 2019; :mod:`~guiding.guides.bsdf_fraction`);
-        False: ``bsdf_fraction`` everywhere (default False).
+        KL divergence from the product f·cos·L to the mixture (Müller 2019; :mod:`~guiding.guides.bsdf_fraction`),
+        within :data:`LEARNED_SHARE_RANGE`; False: ``bsdf_fraction`` everywhere (default False).
     """
 
     rho: float = 0.01
@@ -200,6 +203,9 @@ class TreeParameters:
         _check(self.dtree_max_depth >= 1, f"dtree_max_depth must be >= 1, got {self.dtree_max_depth}")
         _check(0 <= self.bsdf_fraction < 1, f"bsdf_fraction must be in [0, 1), got {self.bsdf_fraction}")
         _check(self.max_nodes is None or self.max_nodes >= 1, f"max_nodes must be >= 1, got {self.max_nodes}")
+        low, high = LEARNED_SHARE_RANGE
+        _check(not self.learn_bsdf_fraction or low <= self.bsdf_fraction <= high,
+               f"a learned bsdf_fraction starts in [{low}, {high}], got {self.bsdf_fraction}")
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ import numpy as np
 
 from .base import Guide, NoPathState, UpdateResult, rgb_mean
 from .bsdf_fraction import LearnedBsdfFraction
-from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
+from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest, capacity
 from .grid_cells import GridCells
 from .parameters import PAPER_SPP_UNIT, QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
 from .stree import STree, iteration_length, stree_locate
@@ -48,14 +48,10 @@ class TreeVertex:
 
     tree: mi.UInt32
     slot: mi.UInt32 = None
-    #: (p_bsdf − p_tree)/m at the sampled direction where the mixture drew it, else 0: what the learned BSDF share
-    #: needs of the vertex (:mod:`~guiding.guides.bsdf_fraction`; None unless it is learned).
+    #: ∂ log m/∂α at the direction the mixture drew ((p_bsdf − p_tree)/m; 1/α at a delta lobe's), 0 where the
+    #: mixture was not sampled: what the learned BSDF share needs of the vertex (:mod:`~guiding.guides.bsdf_fraction`;
+    #: None unless it is learned).
     score: mi.Float = None
-
-
-def _capacity(n: int) -> int:
-    """The smallest power of two ≥ ``n``, at least 2 (the size of an accumulator for ``n`` entries)."""
-    return 1 << max(int(n) - 1, 1).bit_length()
 
 
 class _TreeGuide(Guide):
@@ -108,7 +104,9 @@ class _TreeGuide(Guide):
     def new_paths(self, size: int, max_depth: int):
         if not self.records():
             return NoPathState()
-        self._log = VertexLog(max_depth, ("pdf", "score") if self._fraction else ("pdf",))
+        # With a learned share, the vertex's D-tree (its bits) too: a delta lobe's vertex has no recording leaf to
+        # find it by.
+        self._log = VertexLog(max_depth, ("pdf", "score", "tree") if self._fraction else ("pdf",))
         return self._log.new_paths(size)
 
     def _share(self, tree: mi.UInt32, active: mi.Bool):
@@ -199,7 +197,7 @@ class _TreeGuide(Guide):
         bs.sampled_type = dr.select(use_tree, mi.UInt32(+mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
         bs.sampled_component = dr.select(use_tree, mi.UInt32(0), bs.sampled_component)
         weight = dr.select(delta, bsdf_weight / share, dr.select(guided, mix_weight, bsdf_weight))
-        score = dr.select(guided & ~delta & (p_mix > 0), (p_bsdf - p_tree) / p_mix, 0)
+        score = dr.select(delta, 1 / share, dr.select(guided & (p_mix > 0), (p_bsdf - p_tree) / p_mix, 0))
         return bs, weight, dr.select(guided, slot, NO_RECORD), score
 
     def record(self, state, si, emitted, bs, weight, continues, active, vertex=None):
@@ -211,21 +209,21 @@ class _TreeGuide(Guide):
         # recording tree elsewhere.
         slot = known_or_found(None if vertex is None else vertex.slot, traced,
                               lambda lanes: self._recording.slot_of_dir(tree, si.to_world(bs.wo), lanes))
-        scores = {}
+        learned = {}
         if self._fraction:
-            scores["score"] = mi.Float(0) if vertex is None or vertex.score is None else vertex.score
+            score = mi.Float(0) if vertex is None or vertex.score is None else vertex.score
+            learned = {"needed": score != 0, "score": score,
+                       "tree": dr.reinterpret_array(mi.Float, mi.UInt32(tree))}
         return self._log.append(state, emitted, weight, continues, dr.select(traced, slot, NO_RECORD), active,
-                                pdf=bs.pdf, **scores)
+                                pdf=bs.pdf, **learned)
 
     def finish_paths(self, state) -> None:
         walk_backward(state, self._splat)
 
     # ---------------------------------------------------------------------------------------- host side
     def _reset_accumulators(self) -> None:
-        # Capacities rounded up to powers of two: the atomics of the backward walk (in the render kernel) depend on
-        # the target size, so this keeps the kernel from being recompiled whenever the trees change a little.
-        self._energy_acc = dr.zeros(mi.Float, _capacity(4 * self._recording.n_nodes))
-        self._count_acc = dr.zeros(mi.Float, _capacity(self._recording.n_trees))
+        self._energy_acc = dr.zeros(mi.Float, capacity(4 * self._recording.n_nodes))
+        self._count_acc = dr.zeros(mi.Float, capacity(self._recording.n_trees))
         dr.eval(self._energy_acc, self._count_acc)
 
     def _splat(self, entry, L) -> None:
@@ -242,7 +240,8 @@ class _TreeGuide(Guide):
         tree = dr.gather(mi.UInt32, self._recording.tree_of_node, slot // 4, recorded)
         dr.scatter_reduce(dr.ReduceOp.Add, self._count_acc, mi.Float(1), tree, recorded, mode=mode)
         if self._fraction:
-            self._fraction.record(tree, rgb_mean(entry.weight * L), entry.score, recorded & (entry.score != 0))
+            self._fraction.record(dr.reinterpret_array(mi.UInt32, entry.tree), rgb_mean(entry.weight * L),
+                                  entry.score, entry.score != 0)
 
     def _pull(self) -> tuple[np.ndarray, np.ndarray]:
         """The recorded leaf energies and vertex counts. Entries that are NaN, ±Inf or negative (a float32 sum
@@ -278,7 +277,8 @@ class SDTreeGuide(_TreeGuide):
     Parameters:
       parameters: :class:`~guiding.guides.parameters.SDTreeParameters` (``c``, ``c_pixels``, ``rho``,
         ``dtree_max_depth``, ``bsdf_fraction``, ``max_nodes``, ``uniform_empty_dtrees``, ``guide_delta_mixtures``,
-        ``base_spp``, ``budget_spp``, ``combine``; each documented there), default ``SDTreeParameters()``.
+        ``learn_bsdf_fraction``, ``base_spp``, ``budget_spp``, ``combine``; each documented there), default
+        ``SDTreeParameters()``.
       name: the method name shown in tables (default ``sdtree``).
       overrides: parameters changed from ``parameters`` (``SDTreeGuide(c=1000)``).
 
@@ -434,7 +434,8 @@ class SDTreeGuide(_TreeGuide):
         out = {"method": self.name, "c": self.c, "c_pixels": self.c_pixels, "rho": self.rho,
                "dtree_max_depth": self.dtree_max_depth, "bsdf_fraction": self.bsdf_fraction,
                "uniform_empty_dtrees": self.uniform_empty_dtrees, "guide_delta_mixtures": self.guide_delta_mixtures,
-               "base_spp": self.base_spp, "budget_spp": self.budget_spp, "combine": self.combine}
+               "learn_bsdf_fraction": self.learn_bsdf_fraction, "base_spp": self.base_spp,
+               "budget_spp": self.budget_spp, "combine": self.combine}
         if hasattr(self, "stree"):
             out.update(self._structure_stats())
             out["last_refine"] = self._last_refine
@@ -450,7 +451,8 @@ class QuadtreeGridGuide(_TreeGuide):
 
     Parameters:
       parameters: :class:`~guiding.guides.parameters.QuadtreeGridParameters` (``spatial_resolution`` S, ``rho``,
-        ``dtree_max_depth``, ``bsdf_fraction``, ``max_nodes``), default ``QuadtreeGridParameters()``.
+        ``dtree_max_depth``, ``bsdf_fraction``, ``max_nodes``, ``learn_bsdf_fraction``), default
+        ``QuadtreeGridParameters()``.
       name: the method name shown in tables (default ``quadtree-grid``).
       overrides: parameters changed from ``parameters`` (``QuadtreeGridGuide(spatial_resolution=4)``).
     """
@@ -504,7 +506,7 @@ class QuadtreeGridGuide(_TreeGuide):
     def stats(self) -> dict:
         out = {"method": self.name, "S": self.S, "rho": self.rho, "dtree_max_depth": self.dtree_max_depth,
                "bsdf_fraction": self.bsdf_fraction, "uniform_empty_dtrees": self.uniform_empty_dtrees,
-               "guide_delta_mixtures": self.guide_delta_mixtures}
+               "guide_delta_mixtures": self.guide_delta_mixtures, "learn_bsdf_fraction": self.learn_bsdf_fraction}
         if hasattr(self, "_forest"):
             out.update(self._structure_stats())
         return out

@@ -97,13 +97,15 @@ class VertexLog:
         return self._cursor(entries=dr.alloc_local(self._entry, self.max_depth), n=dr.zeros(mi.UInt32, size))
 
     def append(self, cursor, emitted: mi.Spectrum, weight: mi.Spectrum, continues: mi.Bool, target: mi.UInt32,
-               active: mi.Bool, **scalars: mi.Float):
+               active: mi.Bool, needed: mi.Bool | bool = False, **scalars: mi.Float):
         """Log the vertex the active paths are at (arguments as :meth:`Guide.record`'s; ``target`` where its
         estimate goes, and a value for each of the log's ``scalars``, by name); returns ``cursor``
-        moved on. A path's log starts at its first vertex with a target: the walk needs no vertex before it (a path
-        through delta lobes only logs nothing and walks nothing). Beyond ``max_depth`` vertices a path logs nothing
-        (local memory is not bounds-checked)."""
-        written = mi.Bool(active) & (cursor.n < self.max_depth) & ((cursor.n > 0) | (target != NO_RECORD))
+        moved on. A path's log starts at its first vertex with a target, or that the guide marks ``needed`` for
+        something else its walk does: the walk needs no vertex before it (a path through delta lobes only logs
+        nothing and walks nothing). Beyond ``max_depth`` vertices a path logs nothing (local memory is not
+        bounds-checked)."""
+        starts = (target != NO_RECORD) | needed
+        written = mi.Bool(active) & (cursor.n < self.max_depth) & ((cursor.n > 0) | starts)
         # The walk starts at a path's last vertex with L = 0: a weight there other than 0 (non-finite) would
         # make w·L NaN, so a vertex the path does not continue from logs w = 0.
         entry = self._entry(emitted=mi.Color3f(emitted), weight=mi.Color3f(dr.select(continues, weight, 0)),
