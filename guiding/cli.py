@@ -166,9 +166,10 @@ def build_parser() -> argparse.ArgumentParser:
                                    "the S-tree threshold at several image sizes")
     baseline.add_argument("--out", default="results", help="output folder (default results; references are cached "
                           "under OUT/sdtree_baseline/references)")
-    baseline.add_argument("--part", choices=["all", "equal-spp", "threshold", "learned-share"], default="all",
-                          help="which table to make (default all; learned-share: sdtree with the learned BSDF share "
-                          "against the fixed one on the four shared scenes, results/sdtree_learned_share.md)")
+    baseline.add_argument("--part", choices=["all", "equal-spp", "threshold", "improved-preset"], default="all",
+                          help="which table to make (default all; improved-preset: sdtree with the learned BSDF share "
+                          "and the stochastic spatial filter of Müller 2019, each and together, on the four shared "
+                          "scenes, results/sdtree_improved_preset.md)")
     baseline.add_argument("--scene", default="veach-ajar")
     baseline.add_argument("--scale", type=_positive_float, default=0.0625,
                           help="resolution scale of the equal-spp table (default 0.0625: 80x45)")
@@ -177,8 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
     baseline.add_argument("--reference-spp", type=_positive_int, default=131072,
                           help="spp of the `path` reference of the equal-spp table and of the threshold study's first "
                           "scale (default 131072)")
-    baseline.add_argument("--share-scenes", default=None,
-                          help="comma-separated NAME:SCALE list of the learned-share table (default: the four shared "
+    baseline.add_argument("--preset-scenes", default=None,
+                          help="comma-separated NAME:SCALE list of the improved-preset table (default: the four shared "
                           "scenes at the paper experiments' scales)")
     baseline.add_argument("--threshold-scales", default="0.0625,0.125,0.25",
                           help="comma-separated scales of the threshold study (default 0.0625,0.125,0.25); their "
@@ -432,7 +433,7 @@ def _command_sdtree_baseline(args) -> None:
     out = prepare_output_dir(args.out)
     from .bench import write_table
     from .bench_command import parse_scene_list
-    from .sdtree_baseline import SHARE_SCENES, equal_spp_table, scenes_table, threshold_table
+    from .sdtree_baseline import PRESET_SCENES, equal_spp_table, scenes_table, threshold_table
 
     device = device_name(variant)
     cache = out / "sdtree_baseline"
@@ -457,18 +458,19 @@ def _command_sdtree_baseline(args) -> None:
                     "`stree_leaves`: leaves of the final S-tree, `last_threshold`: the vertices a leaf needed to "
                     "split at the last refinement", device, command, sections={"Runs": runs})
         print(summary.to_string(index=False))
-    if args.part in ("all", "learned-share"):
-        share_scenes = parse_scene_list(args.share_scenes) if args.share_scenes else list(SHARE_SCENES)
-        for name, _ in share_scenes:
+    if args.part in ("all", "improved-preset"):
+        preset_scenes = parse_scene_list(args.preset_scenes) if args.preset_scenes else list(PRESET_SCENES)
+        for name, _ in preset_scenes:
             find_scene(name)
-        summary, runs = scenes_table(share_scenes, args.spp, seeds, args.reference_spp, cache)
-        scenes = ", ".join(f"{name} at scale {scale:g}" for name, scale in share_scenes)
-        command = (f"python -m guiding sdtree-baseline --part learned-share --spp {args.spp} --seeds {args.seeds} "
+        summary, runs = scenes_table(preset_scenes, args.spp, seeds, args.reference_spp, cache)
+        scenes = ", ".join(f"{name} at scale {scale:g}" for name, scale in preset_scenes)
+        command = (f"python -m guiding sdtree-baseline --part improved-preset --spp {args.spp} --seeds {args.seeds} "
                    f"--reference-spp {args.reference_spp}"
-                   + (f" --share-scenes {args.share_scenes}" if args.share_scenes else "")
+                   + (f" --preset-scenes {args.preset_scenes}" if args.preset_scenes else "")
                    + (f" --threads {args.threads}" if args.threads else ""))
-        write_table(summary, out / "sdtree_learned_share", f"The SD-tree with the BSDF share learned per D-tree "
-                    f"(`sdtree-learned`, Müller 2019) against the fixed share 0.5 (`sdtree`) and `brdf` at equal spp: "
+        write_table(summary, out / "sdtree_improved_preset", f"The SD-tree with the pieces of Müller 2019's improved "
+                    f"preset, the BSDF share learned per D-tree (`sdtree-learned`) and the stochastic spatial "
+                    f"filter, each and together, against Tom94's defaults (`sdtree`) and `brdf` at equal spp: "
                     f"{scenes}, {args.spp} spp, seeds {args.seeds}, MAE against a {args.reference_spp}-spp `path` "
                     "reference (`mae_vs_first`: relative to `brdf`)", device, command, sections={"Runs": runs})
         print(summary.to_string(index=False))

@@ -1,6 +1,7 @@
 """The SD-tree baseline's measurements (``python -m guiding sdtree-baseline``): equal-spp errors of the SD-tree in
 its previous and its present setup beside BSDF sampling, the quadtree grid and ours, the S-tree threshold rule
-at several image sizes, and the learned BSDF share (``sdtree-learned``) against the fixed one on the shared scenes.
+at several image sizes, and the pieces of Müller 2019's improved preset (the learned BSDF share, ``sdtree-learned``,
+and the stochastic spatial filter) on the shared scenes.
 
 Every render is the progressive renderer's (:func:`guiding.render.render`, first passes of 8 spp, max depth 16), with the
 seeds of the experiment harness; the error is the paper's tone-mapped MAE against a reference rendered once by
@@ -65,10 +66,15 @@ VARIANTS = (
     Variant("quadtree-grid", "quadtree-grid"),
     Variant("ours", "ours"),
 )
-#: The rows of the learned-share table (Müller 2019's learned BSDF share against the fixed one).
-SHARE_VARIANTS = (Variant("brdf", "brdf"), Variant("sdtree", "sdtree"), Variant("sdtree-learned", "sdtree-learned"))
+#: The rows of the improved-preset table: Müller 2019's learned BSDF share and stochastic spatial filter, alone and
+#: together, against Tom94's defaults.
+PRESET_VARIANTS = (Variant("brdf", "brdf"), Variant("sdtree", "sdtree"),
+                   Variant("sdtree, stochastic spatial filter", "sdtree", {"spatial_filter": "stochastic"}),
+                   Variant("sdtree-learned", "sdtree-learned"),
+                   Variant("sdtree-learned, stochastic spatial filter", "sdtree-learned",
+                           {"spatial_filter": "stochastic"}))
 #: Its scenes, at the resolutions of the paper experiments (config/paper.yaml).
-SHARE_SCENES = (("cornell-box", 0.125), ("veach-ajar", 0.0625), ("staircase2", 0.0625), ("living-room", 0.0625))
+PRESET_SCENES = (("cornell-box", 0.125), ("veach-ajar", 0.0625), ("staircase2", 0.0625), ("living-room", 0.0625))
 #: The S-tree constants of the threshold study: the default c = 12000, a quarter of it to four times it.
 THRESHOLD_CONSTANTS = (3000.0, 6000.0, 12000.0, 24000.0, 48000.0)
 
@@ -208,10 +214,10 @@ def threshold_table(scales: tuple[float, ...] = (0.0625, 0.125, 0.25), scene_nam
     return _summary(records, ["resolution", "reference_spp", "c"])
 
 
-def scenes_table(scenes=SHARE_SCENES, spp: int = 1024, seeds: tuple[int, ...] = (0, 1, 2),
-                 reference_spp: int = 32768, cache: Path = Path("results"), variants=SHARE_VARIANTS):
-    """:func:`equal_spp_table` on each of ``scenes`` ((name, scale) pairs, default :data:`SHARE_SCENES`) with
-    ``variants`` (default :data:`SHARE_VARIANTS`), one table with a ``scene`` column; and every run."""
+def scenes_table(scenes=PRESET_SCENES, spp: int = 1024, seeds: tuple[int, ...] = (0, 1, 2),
+                 reference_spp: int = 32768, cache: Path = Path("results"), variants=PRESET_VARIANTS):
+    """:func:`equal_spp_table` on each of ``scenes`` ((name, scale) pairs, default :data:`PRESET_SCENES`) with
+    ``variants`` (default :data:`PRESET_VARIANTS`), one table with a ``scene`` column; and every run."""
     import pandas as pd
 
     summaries, runs = [], []

@@ -307,6 +307,28 @@ def test_where_the_bsdf_is_sampled_alone(case):
 
 
 # ============================================================================================ refinement
+@pytest.mark.parametrize("jitter, x, expected", [((0.5, 0.5, 0.5), 0.3, 0), ((0.0, 0.5, 0.5), 0.3, 0),
+                                                 ((1.0, 0.5, 0.5), 0.3, 1), ((0.0, 0.5, 0.5), 0.6, 0),
+                                                 ((1.0, 1.0, 1.0), 0.9, 1)])
+def test_stochastic_spatial_filter_splats_within_a_leaf_sized_box(jitter, x, expected):
+    """Tom94's stochastic box: the splat goes to the D-tree at the vertex moved by (ξ − ½)·(its leaf's size), kept
+    in the root box. Here the root cube is split once along x at its middle, so a leaf is half the cube wide."""
+    guide = SDTreeGuide(spatial_filter="stochastic")
+    guide.stree = STree([0, 0, 0], [1, 1, 1])
+    middle = guide.stree.split_value(0)
+    guide.stree.refine(np.array([10.0]), 6.0)
+    assert guide.stree.n_leaves == 2
+    guide._s_device = guide.stree.to_device()
+    low, width = float(guide.stree.lo[0][0]), float(guide.stree.hi[0][0] - guide.stree.lo[0][0])
+    si = mi.SurfaceInteraction3f()
+    si.p = mi.Point3f(low + x * width, 0.5, 0.5)
+    vertex = TreeVertex(mi.UInt32(guide._locate(si.p, True)), jitter=mi.Point3f(*jitter))
+    splat = guide._splat_tree(si, vertex, vertex.tree, mi.Bool(True))
+    own = guide._locate(si.p, True)
+    assert int(own[0]) == int(low + x * width >= middle)
+    assert int(splat[0]) == expected
+
+
 def test_dtree_refinement_subdivides_above_rho_and_conserves_energy():
     forest = nested_forest([[0.5, 0.3, 0.2, 0.0]])
     new = forest.rebuild([0], SPLIT_REFINE, rho=0.01, max_depth=20, keep_energy=True)
@@ -434,10 +456,13 @@ def test_guided_renders_match_mitsuba_path_on_door_ajar(door, door_reference, me
         assert stats["iteration"] >= 3 and stats["stree_leaves"] > 1
 
 
-@pytest.mark.parametrize("method", [*GUIDES, "sdtree-learned"])
+VARIANTS = {"sdtree-learned": {"learn_bsdf_fraction": True}, "sdtree, stochastic filter": {"spatial_filter": "stochastic"}}
+
+
+@pytest.mark.parametrize("method", [*GUIDES, *VARIANTS])
 def test_guided_renders_match_mitsuba_path_on_cornell(cornell, cornell_reference, method):
     """A scene where guided passes are not firefly-ridden: a tighter check (standard error < 1 % of the mean)."""
-    guide = GUIDES[method]() if method in GUIDES else SDTreeGuide(base_spp=16, learn_bsdf_fraction=True)
+    guide = GUIDES[method]() if method in GUIDES else SDTreeGuide(base_spp=16, **VARIANTS[method])
     ours = pass_means(cornell, GuidedPathIntegrator(guide=guide), passes=CORNELL_PASSES, spp=SPP, seed=1)
     reference = cornell_reference
     z = z_scores(ours, reference)

@@ -4,13 +4,13 @@ import pandas as pd
 import pytest
 
 from guiding.cli import main
-from guiding.sdtree_baseline import SHARE_VARIANTS, THRESHOLD_CONSTANTS, VARIANTS
+from guiding.sdtree_baseline import PRESET_VARIANTS, THRESHOLD_CONSTANTS, VARIANTS
 
 
 def test_sdtree_baseline_command_writes_its_tables(tmp_path):
     assert main(["sdtree-baseline", "--out", str(tmp_path), "--scene", "cornell", "--scale", "0.05", "--spp", "24",
                  "--seeds", "0,1", "--reference-spp", "16", "--threshold-scales", "0.05,0.07",
-                 "--share-scenes", "cornell:0.05,cornell:0.07", "--variant", "llvm_ad_rgb"]) == 0
+                 "--preset-scenes", "cornell:0.05,cornell:0.07", "--variant", "llvm_ad_rgb"]) == 0
     summary = pd.read_csv(tmp_path / "sdtree_baseline.csv")
     assert list(summary["variant"]) == [v.label for v in VARIANTS] and (summary["seeds"] == 2).all()
     assert summary["mae"].notna().all() and summary["mae_vs_first"].iloc[0] == 0
@@ -22,11 +22,11 @@ def test_sdtree_baseline_command_writes_its_tables(tmp_path):
     assert len(threshold) == 2 * len(THRESHOLD_CONSTANTS) and threshold["resolution"].nunique() == 2
     # the references of the study have the same samples per image at both sizes: 16 spp at 12 x 12, 8 at 17 x 17
     assert list(threshold["reference_spp"].unique()) == [16, 8]
-    share = pd.read_csv(tmp_path / "sdtree_learned_share.csv")
-    assert list(share["variant"]) == 2 * [v.label for v in SHARE_VARIANTS]
+    share = pd.read_csv(tmp_path / "sdtree_improved_preset.csv")
+    assert list(share["variant"]) == 2 * [v.label for v in PRESET_VARIANTS]
     assert list(share["scale"].unique()) == [0.05, 0.07]
     assert share["mae"].notna().all() and (share["seeds"] == 2).all()
-    for name in ("sdtree_baseline.md", "sdtree_threshold.md", "sdtree_learned_share.md"):
+    for name in ("sdtree_baseline.md", "sdtree_threshold.md", "sdtree_improved_preset.md"):
         text = (tmp_path / name).read_text()
         assert "python -m guiding sdtree-baseline --part" in text and "## Runs" in text
     # the references are cached in the harness's layout

@@ -48,6 +48,10 @@ COMBINE_LAST = "last"
 COMBINE_AUTOMATIC = "automatic"
 COMBINE_INVERSE_VARIANCE = "inverse-variance"
 COMBINE_MODES = (COMBINE_LAST, COMBINE_AUTOMATIC, COMBINE_INVERSE_VARIANCE)
+#: Where the SD-tree splats a vertex (Tom94's ``spatialFilter``): ``nearest``, the D-tree of its own S-tree leaf;
+#: ``stochastic``, the D-tree of a point drawn uniformly in a box of its leaf's size around it (a box filter over
+#: the leaves, in expectation).
+SPATIAL_FILTERS = ("nearest", "stochastic")
 
 #: The image size Müller et al.'s S-tree constant c = 12000 was tuned for (1280 × 720 pixels), and the spp its
 #: threshold counts in: Tom94's guided_path.cpp splits after iteration k of 2^k passes of ``sppPerPass`` spp at
@@ -227,6 +231,8 @@ class SDTreeParameters(TreeParameters):
         end of the budget and records nothing.
       combine: the final image a renderer makes of the iterations, one of :data:`COMBINE_MODES` (default
         ``inverse-variance``, Müller 2019's improved preset; ``last`` is the 2017 paper's).
+      spatial_filter: one of :data:`SPATIAL_FILTERS` (default ``nearest``, Tom94's default; ``stochastic`` is
+        Müller 2019's improved preset).
     """
 
     uniform_empty_dtrees: bool = True
@@ -236,9 +242,12 @@ class SDTreeParameters(TreeParameters):
     base_spp: int = 8
     budget_spp: int | None = None
     combine: str = COMBINE_INVERSE_VARIANCE
+    spatial_filter: str = "nearest"
 
     def __post_init__(self):
         super().__post_init__()
+        _check(self.spatial_filter in SPATIAL_FILTERS,
+               f"unknown spatial filter '{self.spatial_filter}' (choose from {', '.join(SPATIAL_FILTERS)})")
         _check(self.c > 0, f"c must be > 0, got {self.c}")
         _check(self.c_pixels >= 1, f"c_pixels must be >= 1, got {self.c_pixels}")
         _check(self.base_spp >= 1, f"base_spp must be >= 1, got {self.base_spp}")

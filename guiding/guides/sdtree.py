@@ -52,6 +52,8 @@ class TreeVertex:
     #: mixture was not sampled: what the learned BSDF share needs of the vertex (:mod:`~guiding.guides.bsdf_fraction`;
     #: None unless it is learned).
     score: mi.Float = None
+    #: Three uniform numbers that place the vertex's splat in the SD-tree's stochastic spatial filter (None without).
+    jitter: mi.Point3f = None
 
 
 class _TreeGuide(Guide):
@@ -163,6 +165,8 @@ class _TreeGuide(Guide):
             vertex.slot = slot
         if dr.hint(vertex is not None and self._fraction is not None, mode="scalar"):
             vertex.score = score
+        if dr.hint(vertex is not None and self._splat_jittered(), mode="scalar"):
+            vertex.jitter = mi.Point3f(sampler.next_1d(active), sampler.next_1d(active), sampler.next_1d(active))
         return bs, weight
 
     def _mixture_sample(self, si, bsdf, bsdf_ctx, s1, s2, active, tree=None):
@@ -205,10 +209,11 @@ class _TreeGuide(Guide):
         traced = (mi.Bool(active) & continues & si.is_valid() & (bs.pdf > 0)
                   & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
         tree = self._locate(si.p, traced) if vertex is None else vertex.tree
+        splat_tree = self._splat_tree(si, vertex, tree, traced)
         # The recording leaf: the one the mixture's descent found where the trees are one, a descent of the
         # recording tree elsewhere.
         slot = known_or_found(None if vertex is None else vertex.slot, traced,
-                              lambda lanes: self._recording.slot_of_dir(tree, si.to_world(bs.wo), lanes))
+                              lambda lanes: self._recording.slot_of_dir(splat_tree, si.to_world(bs.wo), lanes))
         learned = {}
         if self._fraction:
             score = mi.Float(0) if vertex is None or vertex.score is None else vertex.score
@@ -216,6 +221,14 @@ class _TreeGuide(Guide):
                        "tree": dr.reinterpret_array(mi.Float, mi.UInt32(tree))}
         return self._log.append(state, emitted, weight, continues, dr.select(traced, slot, NO_RECORD), active,
                                 pdf=bs.pdf, **learned)
+
+    def _splat_jittered(self) -> bool:
+        """Whether vertices splat at a jittered position (the SD-tree's stochastic spatial filter)."""
+        return False
+
+    def _splat_tree(self, si, vertex, tree, active) -> mi.UInt32:
+        """The D-tree a vertex's radiance is splatted into: its own."""
+        return tree
 
     def finish_paths(self, state) -> None:
         walk_backward(state, self._splat)
@@ -277,8 +290,8 @@ class SDTreeGuide(_TreeGuide):
     Parameters:
       parameters: :class:`~guiding.guides.parameters.SDTreeParameters` (``c``, ``c_pixels``, ``rho``,
         ``dtree_max_depth``, ``bsdf_fraction``, ``max_nodes``, ``uniform_empty_dtrees``, ``guide_delta_mixtures``,
-        ``learn_bsdf_fraction``, ``base_spp``, ``budget_spp``, ``combine``; each documented there), default
-        ``SDTreeParameters()``.
+        ``learn_bsdf_fraction``, ``base_spp``, ``budget_spp``, ``combine``, ``spatial_filter``; each documented
+        there), default ``SDTreeParameters()``.
       name: the method name shown in tables (default ``sdtree``).
       overrides: parameters changed from ``parameters`` (``SDTreeGuide(c=1000)``).
 
@@ -303,6 +316,7 @@ class SDTreeGuide(_TreeGuide):
         self.base_spp = self.parameters.base_spp
         self.budget_spp = self.parameters.budget_spp
         self.combine = self.parameters.combine
+        self.spatial_filter = self.parameters.spatial_filter
         self._recording_on = True
         self._pass_paths = mi.UInt32(0)  # paths recorded since the last update (counted in the kernel)
 
@@ -362,6 +376,20 @@ class SDTreeGuide(_TreeGuide):
 
     def _locate(self, p, active):
         return stree_locate(self._s_device, p, active)
+
+    def _splat_jittered(self) -> bool:
+        return self.spatial_filter == "stochastic"
+
+    def _splat_tree(self, si, vertex, tree, active) -> mi.UInt32:
+        """With the stochastic spatial filter, the D-tree at a point drawn uniformly in a box of the vertex's leaf
+        size around it, within the S-tree's root box (Tom94's ``EStochasticBox``); else the vertex's own. (A vertex
+        located without ``sample``'s jitter splats at its own.)"""
+        if not self._splat_jittered() or vertex is None or vertex.jitter is None:
+            return tree
+        arrays = self._s_device
+        extent = dr.gather(mi.Vector4f, arrays["leaf_extent"], tree, active)
+        offset = (vertex.jitter - 0.5) * mi.Vector3f(extent.x, extent.y, extent.z)
+        return self._locate(dr.clip(si.p + offset, arrays["lo"], arrays["hi"]), active)
 
     def new_paths(self, size: int, max_depth: int):
         if self.records():
@@ -435,7 +463,7 @@ class SDTreeGuide(_TreeGuide):
                "dtree_max_depth": self.dtree_max_depth, "bsdf_fraction": self.bsdf_fraction,
                "uniform_empty_dtrees": self.uniform_empty_dtrees, "guide_delta_mixtures": self.guide_delta_mixtures,
                "learn_bsdf_fraction": self.learn_bsdf_fraction, "base_spp": self.base_spp,
-               "budget_spp": self.budget_spp, "combine": self.combine}
+               "budget_spp": self.budget_spp, "combine": self.combine, "spatial_filter": self.spatial_filter}
         if hasattr(self, "stree"):
             out.update(self._structure_stats())
             out["last_refine"] = self._last_refine
