@@ -307,26 +307,30 @@ def test_where_the_bsdf_is_sampled_alone(case):
 
 
 # ============================================================================================ refinement
-@pytest.mark.parametrize("jitter, x, expected", [((0.5, 0.5, 0.5), 0.3, 0), ((0.0, 0.5, 0.5), 0.3, 0),
-                                                 ((1.0, 0.5, 0.5), 0.3, 1), ((0.0, 0.5, 0.5), 0.6, 0),
-                                                 ((1.0, 1.0, 1.0), 0.9, 1)])
-def test_stochastic_spatial_filter_splats_within_a_leaf_sized_box(jitter, x, expected):
-    """Tom94's stochastic box: the splat goes to the D-tree at the vertex moved by (ξ − ½)·(its leaf's size), kept
-    in the root box. Here the root cube is split once along x at its middle, so a leaf is half the cube wide."""
+@pytest.mark.parametrize("position, jitter, expected", [
+    ((0.3, 0.3, 0.5), (0.5, 0.5, 0.5), 1),    # no offset: its own leaf
+    ((0.3, 0.3, 0.5), (0.8, 0.5, 0.5), 1),    # x + 0.15 stays (a box of the root's size would reach the right half)
+    ((0.3, 0.3, 0.5), (1.0, 0.5, 0.5), 0),    # x + 0.25 crosses into the right half
+    ((0.3, 0.3, 0.5), (0.5, 0.8, 0.5), 1),    # y + 0.15 stays (a box of the root's size would reach the top quarter)
+    ((0.3, 0.3, 0.5), (0.5, 1.0, 0.5), 2),    # y + 0.25 crosses into the top quarter
+    ((0.6, 0.1, 0.5), (0.2, 1.0, 0.5), 2),    # the right half's box: x − 0.15, y + 0.5 (a left leaf's: y + 0.25)
+    ((0.9, 0.9, 0.9), (1.0, 1.0, 1.0), 0)])   # kept in the root box
+def test_stochastic_spatial_filter_splats_within_a_leaf_sized_box(position, jitter, expected):
+    """Tom94's stochastic box: the splat goes to the D-tree at the vertex moved by (ξ − ½)·(its own leaf's size),
+    kept in the root box. The root cube is split along x, then its left half along y: D-trees 0 (the right half,
+    ½ × 1 × 1 of the root), 1 (left, bottom: ½ × ½ × 1) and 2 (left, top)."""
     guide = SDTreeGuide(spatial_filter="stochastic")
     guide.stree = STree([0, 0, 0], [1, 1, 1])
-    middle = guide.stree.split_value(0)
-    guide.stree.refine(np.array([10.0]), 6.0)
-    assert guide.stree.n_leaves == 2
-    guide._s_device = guide.stree.to_device()
+    guide.stree.refine(np.array([10.0]), 6.0)             # the root splits in two halves along x
+    guide.stree.refine(np.array([10.0, 1.0]), 6.0)        # the left half (D-tree 0) splits along y; renumbered
+    assert guide.stree.n_leaves == 3
+    guide._s_device = guide.stree.to_device(leaf_boxes=True)
     low, width = float(guide.stree.lo[0][0]), float(guide.stree.hi[0][0] - guide.stree.lo[0][0])
     si = mi.SurfaceInteraction3f()
-    si.p = mi.Point3f(low + x * width, 0.5, 0.5)
-    vertex = TreeVertex(mi.UInt32(guide._locate(si.p, True)), jitter=mi.Point3f(*jitter))
-    splat = guide._splat_tree(si, vertex, vertex.tree, mi.Bool(True))
-    own = guide._locate(si.p, True)
-    assert int(own[0]) == int(low + x * width >= middle)
-    assert int(splat[0]) == expected
+    si.p = mi.Point3f(*(low + c * width for c in position))
+    vertex = TreeVertex(guide._locate(si.p, True), jitter=mi.Point3f(*jitter))
+    assert int(vertex.tree[0]) == (0 if position[0] > 0.5 else 1 if position[1] < 0.5 else 2)
+    assert int(guide._splat_tree(si, vertex, vertex.tree, mi.Bool(True))[0]) == expected
 
 
 def test_dtree_refinement_subdivides_above_rho_and_conserves_energy():

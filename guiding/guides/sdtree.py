@@ -165,7 +165,7 @@ class _TreeGuide(Guide):
             vertex.slot = slot
         if dr.hint(vertex is not None and self._fraction is not None, mode="scalar"):
             vertex.score = score
-        if dr.hint(vertex is not None and self._splat_jittered(), mode="scalar"):
+        if dr.hint(vertex is not None and self._splat_jittered() and self.records(), mode="scalar"):
             vertex.jitter = mi.Point3f(sampler.next_1d(active), sampler.next_1d(active), sampler.next_1d(active))
         return bs, weight
 
@@ -360,7 +360,7 @@ class SDTreeGuide(_TreeGuide):
     def prepare(self, scene: mi.Scene) -> None:
         bbox = scene.bbox()
         self.stree = STree(np.array(bbox.min), np.array(bbox.max))
-        self._s_device = self.stree.to_device()
+        self._s_device = self.stree.to_device(leaf_boxes=self._splat_jittered())
         self._sampling_host = Forest.empty(1)
         self._recording_host = Forest.empty(1).rebuild([0], SPLIT_REFINE, self.rho, self.dtree_max_depth,
                                                        keep_energy=False, max_nodes=self.max_nodes)
@@ -436,7 +436,7 @@ class SDTreeGuide(_TreeGuide):
         self._recording_host = built.rebuild(sources, SPLIT_REFINE, self.rho, self.dtree_max_depth,
                                              keep_energy=False, max_nodes=self.max_nodes)
         host_seconds = time.perf_counter() - start
-        self._s_device = self.stree.to_device()
+        self._s_device = self.stree.to_device(leaf_boxes=self._splat_jittered())
         self._sampling = DeviceForest(self._sampling_host)
         self._recording = DeviceForest(self._recording_host)
         self._reset_accumulators()

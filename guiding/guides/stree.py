@@ -91,11 +91,12 @@ class STree:
             self.tree[n] = new
         return sources
 
-    def to_device(self) -> dict:
+    def to_device(self, leaf_boxes: bool = False) -> dict:
         """The tree for :func:`stree_locate`: per node a pair of words, ``first`` (the first child of an inner node,
         ``LEAF | D-tree index`` for a leaf) and the bits of ``split`` (float32), read with one packet gather per level
-        of the descent; a node's axis follows from its depth. Also the root box (``lo``, ``hi``) and the size of
-        each D-tree's leaf box (``leaf_extent``, four floats per D-tree, for the stochastic spatial filter)."""
+        of the descent; a node's axis follows from its depth. With ``leaf_boxes``, also the root box's upper
+        corner (``hi``) and the size of each D-tree's leaf box (``leaf_extent``, four floats per D-tree), for the
+        stochastic spatial filter."""
         first = np.array([LEAF | t if c < 0 else c for c, t in zip(self.child, self.tree)], dtype=np.uint32)
         lo, hi, axis = np.asarray(self.lo), np.asarray(self.hi), np.asarray(self.axis)
         nodes = np.arange(self.n_nodes)
@@ -103,14 +104,15 @@ class STree:
         words = np.stack([first, split.astype(np.float32).view(np.uint32)], axis=1).ravel()
         cells = 1 << START_LEVELS
         size = hi[0, 0] - lo[0, 0]
-        extent = np.zeros((self.n_leaves, 4), dtype=np.float32)
-        leaves = np.nonzero(np.asarray(self.child) < 0)[0]
-        extent[np.asarray(self.tree)[leaves], :3] = hi[leaves] - lo[leaves]
         arrays = {"nodes": mi.UInt32(padded(words)), "start": mi.UInt32(self._start_nodes(cells, split)),
                   "lo": dr.opaque(mi.Point3f, [float(x) for x in lo[0]]),
-                  "hi": dr.opaque(mi.Point3f, [float(x) for x in hi[0]]),
-                  "leaf_extent": mi.Float(padded(extent.ravel())),
                   "cells_per_unit": dr.opaque(mi.Float, float(cells / size))}
+        if leaf_boxes:
+            extent = np.zeros((self.n_leaves, 4), dtype=np.float32)
+            leaves = np.nonzero(np.asarray(self.child) < 0)[0]
+            extent[np.asarray(self.tree)[leaves], :3] = hi[leaves] - lo[leaves]
+            arrays.update(hi=dr.opaque(mi.Point3f, [float(x) for x in hi[0]]),
+                          leaf_extent=mi.Float(padded(extent.ravel())))
         dr.eval(*arrays.values())
         return arrays
 
