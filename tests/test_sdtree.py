@@ -314,10 +314,10 @@ def test_where_the_bsdf_is_sampled_alone(case):
     ((0.3, 0.3, 0.5), (0.5, 0.8, 0.5), 1),    # y + 0.15 stays (a box of the root's size would reach the top quarter)
     ((0.3, 0.3, 0.5), (0.5, 1.0, 0.5), 2),    # y + 0.25 crosses into the top quarter
     ((0.6, 0.1, 0.5), (0.2, 1.0, 0.5), 2),    # the right half's box: x − 0.15, y + 0.5 (a left leaf's: y + 0.25)
-    ((0.9, 0.9, 0.9), (1.0, 1.0, 1.0), 0)])   # kept in the root box
+    ((0.9, 0.9, 0.9), (1.0, 1.0, 1.0), 0)])   # outside the root cube: the leaf of its nearest point
 def test_stochastic_spatial_filter_splats_within_a_leaf_sized_box(position, jitter, expected):
     """Tom94's stochastic box: the splat goes to the D-tree at the vertex moved by (ξ − ½)·(its own leaf's size),
-    kept in the root box. The root cube is split along x, then its left half along y: D-trees 0 (the right half,
+    or, outside the root cube, at its nearest point there. The root cube is split along x, then its left half along y: D-trees 0 (the right half,
     ½ × 1 × 1 of the root), 1 (left, bottom: ½ × ½ × 1) and 2 (left, top)."""
     guide = SDTreeGuide(spatial_filter="stochastic")
     guide.stree = STree([0, 0, 0], [1, 1, 1])

@@ -22,6 +22,7 @@ accumulators the kernel filled.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -106,10 +107,19 @@ class _TreeGuide(Guide):
     def new_paths(self, size: int, max_depth: int):
         if not self.records():
             return NoPathState()
-        # With a learned share, the vertex's D-tree (its bits) too: a delta lobe's vertex has no recording leaf to
-        # find it by.
-        self._log = VertexLog(max_depth, ("pdf", "score", "tree") if self._fraction else ("pdf",))
+        # With a learned share, the vertex's D-tree too: a delta lobe's vertex has no recording leaf to find it by.
+        learned = {"score": mi.Float, "tree": mi.UInt32} if self._fraction else {}
+        self._log = VertexLog(max_depth, {"pdf": mi.Float, **learned})
         return self._log.new_paths(size)
+
+    def _learned_shares(self, n_trees: int) -> LearnedBsdfFraction | None:
+        """The learned BSDF shares of ``n_trees`` fresh D-trees, or None where the share is ``bsdf_fraction``."""
+        return LearnedBsdfFraction(n_trees, self.bsdf_fraction) if self.learn_bsdf_fraction else None
+
+    def _tree_stats(self) -> dict:
+        """The method's name and the parameters the tree guides share (:class:`TreeParameters`), for ``stats()``."""
+        return {"method": self.name,
+                **{f.name: getattr(self.parameters, f.name) for f in dataclasses.fields(TreeParameters)}}
 
     def _share(self, tree: mi.UInt32, active: mi.Bool):
         """The BSDF share of the mixture at D-trees ``tree``: learned, or ``bsdf_fraction``."""
@@ -217,8 +227,7 @@ class _TreeGuide(Guide):
         learned = {}
         if self._fraction:
             score = mi.Float(0) if vertex is None or vertex.score is None else vertex.score
-            learned = {"needed": score != 0, "score": score,
-                       "tree": dr.reinterpret_array(mi.Float, mi.UInt32(tree))}
+            learned = {"needed": score != 0, "score": score, "tree": tree}
         return self._log.append(state, emitted, weight, continues, dr.select(traced, slot, NO_RECORD), active,
                                 pdf=bs.pdf, **learned)
 
@@ -253,8 +262,7 @@ class _TreeGuide(Guide):
         tree = dr.gather(mi.UInt32, self._recording.tree_of_node, slot // 4, recorded)
         dr.scatter_reduce(dr.ReduceOp.Add, self._count_acc, mi.Float(1), tree, recorded, mode=mode)
         if self._fraction:
-            self._fraction.record(dr.reinterpret_array(mi.UInt32, entry.tree), rgb_mean(entry.weight * L),
-                                  entry.score, entry.score != 0)
+            self._fraction.record(entry.tree, rgb_mean(entry.weight * L), entry.score, entry.score != 0)
 
     def _pull(self) -> tuple[np.ndarray, np.ndarray]:
         """The recorded leaf energies and vertex counts. Entries that are NaN, ±Inf or negative (a float32 sum
@@ -366,7 +374,7 @@ class SDTreeGuide(_TreeGuide):
                                                        keep_energy=False, max_nodes=self.max_nodes)
         self._sampling = DeviceForest(self._sampling_host)
         self._recording = DeviceForest(self._recording_host)
-        self._fraction = LearnedBsdfFraction(1, self.bsdf_fraction) if self.learn_bsdf_fraction else None
+        self._fraction = self._learned_shares(1)
         self._reset_accumulators()
         self._recording_on = True
         self.built = False
@@ -382,14 +390,14 @@ class SDTreeGuide(_TreeGuide):
 
     def _splat_tree(self, si, vertex, tree, active) -> mi.UInt32:
         """With the stochastic spatial filter, the D-tree at a point drawn uniformly in a box of the vertex's leaf
-        size around it, within the S-tree's root box (Tom94's ``EStochasticBox``); else the vertex's own. (A vertex
-        located without ``sample``'s jitter splats at its own.)"""
+        size around it (Tom94's ``EStochasticBox``; he clips the point to the root box, and :func:`stree_locate`
+        finds the same leaf for a point outside it); else the vertex's own. (A vertex located without ``sample``'s
+        jitter splats at its own.)"""
         if not self._splat_jittered() or vertex is None or vertex.jitter is None:
             return tree
-        arrays = self._s_device
-        extent = dr.gather(mi.Vector4f, arrays["leaf_extent"], tree, active)
+        extent = dr.gather(mi.Vector4f, self._s_device["leaf_extent"], tree, active)
         offset = (vertex.jitter - 0.5) * mi.Vector3f(extent.x, extent.y, extent.z)
-        return self._locate(dr.clip(si.p + offset, arrays["lo"], arrays["hi"]), active)
+        return self._locate(si.p + offset, active)
 
     def new_paths(self, size: int, max_depth: int):
         if self.records():
@@ -459,10 +467,7 @@ class SDTreeGuide(_TreeGuide):
         return stats
 
     def stats(self) -> dict:
-        out = {"method": self.name, "c": self.c, "c_pixels": self.c_pixels, "rho": self.rho,
-               "dtree_max_depth": self.dtree_max_depth, "bsdf_fraction": self.bsdf_fraction,
-               "uniform_empty_dtrees": self.uniform_empty_dtrees, "guide_delta_mixtures": self.guide_delta_mixtures,
-               "learn_bsdf_fraction": self.learn_bsdf_fraction, "base_spp": self.base_spp,
+        out = {**self._tree_stats(), "c": self.c, "c_pixels": self.c_pixels, "base_spp": self.base_spp,
                "budget_spp": self.budget_spp, "combine": self.combine, "spatial_filter": self.spatial_filter}
         if hasattr(self, "stree"):
             out.update(self._structure_stats())
@@ -498,7 +503,7 @@ class QuadtreeGridGuide(_TreeGuide):
         self._forest = Forest.empty(n).rebuild(np.arange(n), SPLIT_GROW, self.rho, self.dtree_max_depth,
                                                keep_energy=True, max_nodes=self.max_nodes)
         self._sampling = self._recording = DeviceForest(self._forest)
-        self._fraction = LearnedBsdfFraction(n, self.bsdf_fraction) if self.learn_bsdf_fraction else None
+        self._fraction = self._learned_shares(n)
         self._reset_accumulators()
         self.built = False
 
@@ -532,9 +537,7 @@ class QuadtreeGridGuide(_TreeGuide):
         return stats
 
     def stats(self) -> dict:
-        out = {"method": self.name, "S": self.S, "rho": self.rho, "dtree_max_depth": self.dtree_max_depth,
-               "bsdf_fraction": self.bsdf_fraction, "uniform_empty_dtrees": self.uniform_empty_dtrees,
-               "guide_delta_mixtures": self.guide_delta_mixtures, "learn_bsdf_fraction": self.learn_bsdf_fraction}
+        out = {**self._tree_stats(), "S": self.S}
         if hasattr(self, "_forest"):
             out.update(self._structure_stats())
         return out

@@ -94,9 +94,8 @@ class STree:
     def to_device(self, leaf_boxes: bool = False) -> dict:
         """The tree for :func:`stree_locate`: per node a pair of words, ``first`` (the first child of an inner node,
         ``LEAF | D-tree index`` for a leaf) and the bits of ``split`` (float32), read with one packet gather per level
-        of the descent; a node's axis follows from its depth. With ``leaf_boxes``, also the root box's upper
-        corner (``hi``) and the size of each D-tree's leaf box (``leaf_extent``, four floats per D-tree), for the
-        stochastic spatial filter."""
+        of the descent; a node's axis follows from its depth. With ``leaf_boxes``, also the size of each D-tree's
+        leaf box (``leaf_extent``, four floats per D-tree), for the stochastic spatial filter."""
         first = np.array([LEAF | t if c < 0 else c for c, t in zip(self.child, self.tree)], dtype=np.uint32)
         lo, hi, axis = np.asarray(self.lo), np.asarray(self.hi), np.asarray(self.axis)
         nodes = np.arange(self.n_nodes)
@@ -111,8 +110,7 @@ class STree:
             extent = np.zeros((self.n_leaves, 4), dtype=np.float32)
             leaves = np.nonzero(np.asarray(self.child) < 0)[0]
             extent[np.asarray(self.tree)[leaves], :3] = hi[leaves] - lo[leaves]
-            arrays.update(hi=dr.opaque(mi.Point3f, [float(x) for x in hi[0]]),
-                          leaf_extent=mi.Float(padded(extent.ravel())))
+            arrays["leaf_extent"] = mi.Float(padded(extent.ravel()))
         dr.eval(*arrays.values())
         return arrays
 
@@ -135,8 +133,9 @@ class STree:
 def stree_locate(arrays: dict, p, active=True):
     """D-tree index of the S-tree leaf containing ``p`` (device); 0 in inactive lanes. The descent starts at the node
     of ``p``'s cell in the start table (:data:`START_LEVELS`): a leaf, or an inner node of depth ``3·g``, which splits
-    along x. (Near a cell's face, float rounding may start it in the neighbouring cell: such a point finds a leaf
-    next to its own, the same one wherever it is looked up.)"""
+    along x. A point outside the root cube finds the leaf its nearest point of the cube is in (the start cell is
+    clamped to the grid, and every split lies inside the cube). (Near a cell's face, float rounding may start it in
+    the neighbouring cell: such a point finds a leaf next to its own, the same one wherever it is looked up.)"""
     cells = 1 << START_LEVELS
     c = dr.clip(mi.Vector3i(dr.floor((p - arrays["lo"]) * arrays["cells_per_unit"])), 0, cells - 1)
     node = dr.gather(mi.UInt32, arrays["start"], mi.UInt32((c.z * cells + c.y) * cells + c.x), active)

@@ -18,8 +18,8 @@ memory needs neither: it is sized by ``max_depth`` per lane in flight, and no ve
 vertex with a target (the vertices before it have nothing to learn and nothing the walk needs): ``emitted`` (RGB, the
 radiance ``Le`` emitted at the vertex towards the previous one), ``weight`` (RGB, ``w = f·cos/pdf`` including
 Russian roulette, 0 where the path ends), ``target`` (UInt32: where the guide records the vertex's estimate, an
-accumulator index of its own; :data:`NO_RECORD` for none) and the floats a guide asks for by name (the SD-tree's
-``pdf``, the density of the sampled direction, and ``score`` for its learned BSDF share). The path's loop state
+accumulator index of its own; :data:`NO_RECORD` for none) and the values a guide asks for by name (the SD-tree's
+``pdf``, the density of the sampled direction, and ``score`` and ``tree`` for its learned BSDF share). The path's loop state
 (:meth:`VertexLog.new_paths`) carries the buffer and the number of vertices logged.
 
 :func:`known_or_found` is how a guide finds where a vertex's estimate goes (this log's ``target``, or a SARSA
@@ -61,13 +61,12 @@ def _pytree(name: str, doc: str, fields: dict) -> type:
                           namespace={"DRJIT_STRUCT": fields, "__doc__": doc})
 
 
-def _types(scalars: tuple[str, ...]) -> tuple[type, type]:
+def _types(extra: tuple[tuple[str, type], ...]) -> tuple[type, type]:
     """The entry and loop-state classes of a log, built per variant (their fields are the variant's types, and this
-    module may be imported before a variant is set) and per set of extra ``scalars``."""
-    key = (mi.variant(), scalars)
+    module may be imported before a variant is set) and per set of ``extra`` fields (name, type)."""
+    key = (mi.variant(), extra)
     if key not in _TYPES:
-        fields = {"emitted": mi.Color3f, "weight": mi.Color3f, "target": mi.UInt32,
-                  **{name: mi.Float for name in scalars}}
+        fields = {"emitted": mi.Color3f, "weight": mi.Color3f, "target": mi.UInt32, **dict(extra)}
         entry = _pytree("VertexEntry", "One logged vertex (see the module docstring).", fields)
         cursor = _pytree("PathCursor", "A path's log: its vertices (local memory) and how many are logged.",
                          {"entries": dr.Local, "n": mi.UInt32})
@@ -80,12 +79,13 @@ class VertexLog:
 
     Parameters:
       max_depth: most vertices logged per path (the integrator's ``max_depth``).
-      scalars: the names of further floats logged per vertex (``pdf``: the density of its sampled direction).
+      extra: further values logged per vertex, by name and Dr.Jit type (``{"pdf": mi.Float}``: the density of
+        its sampled direction).
     """
 
-    def __init__(self, max_depth: int, scalars: tuple[str, ...] = ()):
-        self.max_depth, self.scalars = max_depth, tuple(scalars)
-        self._entry, self._cursor = _types(self.scalars)
+    def __init__(self, max_depth: int, extra: dict[str, type] | None = None):
+        self.max_depth, self.extra = max_depth, dict(extra or {})
+        self._entry, self._cursor = _types(tuple(self.extra.items()))
 
     def new_paths(self, size: int):
         """The loop state of ``size`` paths, none of their vertices logged yet.
@@ -97,9 +97,9 @@ class VertexLog:
         return self._cursor(entries=dr.alloc_local(self._entry, self.max_depth), n=dr.zeros(mi.UInt32, size))
 
     def append(self, cursor, emitted: mi.Spectrum, weight: mi.Spectrum, continues: mi.Bool, target: mi.UInt32,
-               active: mi.Bool, needed: mi.Bool | bool = False, **scalars: mi.Float):
+               active: mi.Bool, needed: mi.Bool | bool = False, **extra):
         """Log the vertex the active paths are at (arguments as :meth:`Guide.record`'s; ``target`` where its
-        estimate goes, and a value for each of the log's ``scalars``, by name); returns ``cursor``
+        estimate goes, and a value for each of the log's ``extra`` fields, by name); returns ``cursor``
         moved on. A path's log starts at its first vertex with a target, or that the guide marks ``needed`` for
         something else its walk does: the walk needs no vertex before it (a path through delta lobes only logs
         nothing and walks nothing). Beyond ``max_depth`` vertices a path logs nothing (local memory is not
@@ -110,8 +110,8 @@ class VertexLog:
         # make w·L NaN, so a vertex the path does not continue from logs w = 0.
         entry = self._entry(emitted=mi.Color3f(emitted), weight=mi.Color3f(dr.select(continues, weight, 0)),
                             target=mi.UInt32(target))
-        for name in self.scalars:
-            setattr(entry, name, mi.Float(scalars[name]))
+        for name, kind in self.extra.items():
+            setattr(entry, name, kind(extra[name]))
         cursor.entries.write(entry, cursor.n, written)
         cursor.n = dr.select(written, cursor.n + 1, cursor.n)
         return cursor
