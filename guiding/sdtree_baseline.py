@@ -1,7 +1,7 @@
 """The SD-tree baseline's measurements (``python -m guiding sdtree-baseline``): equal-spp errors of the SD-tree in
 its previous and its present setup beside BSDF sampling, the quadtree grid and ours, the S-tree threshold rule
-at several image sizes, and the pieces of Müller 2019's improved preset (the learned BSDF share, ``sdtree-learned``,
-and the stochastic spatial filter) on the shared scenes.
+at several image sizes, the pieces of Müller 2019's improved preset (the learned BSDF share, ``sdtree-learned``,
+and the stochastic spatial filter) on the shared scenes, and the SD-tree at several fixed BSDF shares there.
 
 Every render is the progressive renderer's (:func:`guiding.render.render`, first passes of 8 spp, max depth 16), with the
 seeds of the experiment harness; the error is the paper's tone-mapped MAE against a reference rendered once by
@@ -73,7 +73,14 @@ PRESET_VARIANTS = (Variant("brdf", "brdf"), Variant("sdtree", "sdtree"),
                    Variant("sdtree-learned", "sdtree-learned"),
                    Variant("sdtree-learned, stochastic spatial filter", "sdtree-learned",
                            {"spatial_filter": "stochastic"}))
-#: Its scenes, at the resolutions of the paper experiments (config/paper.yaml).
+#: The BSDF shares of the share study: Tom94's 0.5 and a range around it.
+SHARE_STUDY = (0.3, 0.5, 0.7, 0.9)
+#: The rows of the share study: the SD-tree at each fixed share of :data:`SHARE_STUDY`, and the learned share.
+SHARE_VARIANTS = (Variant("brdf", "brdf"),
+                  *(Variant(f"sdtree, BSDF share {share:g}", "sdtree", {"bsdf_fraction": share})
+                    for share in SHARE_STUDY),
+                  Variant("sdtree-learned", "sdtree-learned"))
+#: Their scenes, at the resolutions of the paper experiments (config/paper.yaml).
 PRESET_SCENES = (("cornell-box", 0.125), ("veach-ajar", 0.0625), ("staircase2", 0.0625), ("living-room", 0.0625))
 #: The S-tree constants of the threshold study: the default c = 12000, a quarter of it to four times it.
 THRESHOLD_CONSTANTS = (3000.0, 6000.0, 12000.0, 24000.0, 48000.0)
@@ -157,8 +164,10 @@ def equal_spp_table(scene_name: str = "veach-ajar", scale: float = 0.0625, spp: 
                     seeds: tuple[int, ...] = (0, 1, 2), reference_spp: int = 131072, cache: Path = Path("results"),
                     variants: tuple[Variant, ...] = VARIANTS):
     """MAE (mean and standard deviation over ``seeds``), relMSE, hit rate, seconds, final S-tree leaves and last
-    S-tree threshold of each of ``variants`` at ``spp`` spp on the scene, and each one's MAE relative to the first
-    row's (``mae_vs_first``: −0.25 is 25 % below ``brdf``); and every run.
+    S-tree threshold of each of ``variants`` at ``spp`` spp on the scene, each one's MAE relative to the first
+    row's (``mae_vs_first``: −0.25 is 25 % below ``brdf``) and its break-even cost (``break_even_cost``: the cost
+    per spp, relative to the first row's, below which it has the lower MAE at equal time, with MAE ∝ 1/sqrt(spp));
+    and every run.
 
     Parameters:
       scene_name, scale: the scene and its resolution scale (default veach-ajar at 1/16: 80 × 45).
@@ -179,6 +188,9 @@ def equal_spp_table(scene_name: str = "veach-ajar", scale: float = 0.0625, spp: 
     summary, runs = _summary(_runs(scene, reference, rows, spp, seeds), ["variant", "method", "overrides"])
     summary.insert(summary.columns.get_loc("mae_std") + 1, "mae_vs_first",
                    summary["mae"] / summary["mae"].iloc[0] - 1)
+    # With MAE ∝ 1/sqrt(spp), a row costing less than this per spp (relative to the first row) beats it at equal time.
+    summary.insert(summary.columns.get_loc("mae_vs_first") + 1, "break_even_cost",
+                   (summary["mae"].iloc[0] / summary["mae"]) ** 2)
     return summary, runs
 
 

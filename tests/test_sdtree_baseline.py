@@ -1,10 +1,10 @@
-"""`python -m guiding sdtree-baseline`: its three tables, with the command that made them, from a tiny run."""
+"""`python -m guiding sdtree-baseline`: its four tables, with the command that made them, from a tiny run."""
 
 import pandas as pd
 import pytest
 
 from guiding.cli import main
-from guiding.sdtree_baseline import PRESET_VARIANTS, THRESHOLD_CONSTANTS, VARIANTS
+from guiding.sdtree_baseline import PRESET_VARIANTS, SHARE_VARIANTS, THRESHOLD_CONSTANTS, VARIANTS
 
 
 def test_sdtree_baseline_command_writes_its_tables(tmp_path):
@@ -26,7 +26,14 @@ def test_sdtree_baseline_command_writes_its_tables(tmp_path):
     assert list(share["variant"]) == 2 * [v.label for v in PRESET_VARIANTS]
     assert list(share["scale"].unique()) == [0.05, 0.07]
     assert share["mae"].notna().all() and (share["seeds"] == 2).all()
-    for name in ("sdtree_baseline.md", "sdtree_threshold.md", "sdtree_improved_preset.md"):
+    shares = pd.read_csv(tmp_path / "sdtree_bsdf_share.csv")
+    assert list(shares["variant"]) == 2 * [v.label for v in SHARE_VARIANTS]
+    assert "bsdf_fraction=0.3" in set(shares["overrides"]) and shares["mae"].notna().all()
+    # the break-even cost of a row is (brdf's MAE / its MAE)² on its scene: the cost at which it ties at equal time
+    for _, scene in shares.groupby("scale"):
+        brdf = scene["mae"].iloc[0]
+        assert scene["break_even_cost"].tolist() == pytest.approx(((brdf / scene["mae"]) ** 2).tolist(), rel=5e-3)
+    for name in ("sdtree_baseline.md", "sdtree_threshold.md", "sdtree_improved_preset.md", "sdtree_bsdf_share.md"):
         text = (tmp_path / name).read_text()
         assert "python -m guiding sdtree-baseline --part" in text and "## Runs" in text
     # the references are cached in the harness's layout
