@@ -19,6 +19,7 @@ from .bench_command import command_bench
 from .errors import GuidingError
 from .output_dirs import output_dir, prepare_output_dir
 from .provenance import device_name, render_provenance
+from .sdtree_baseline import SCENE_STUDIES
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
@@ -166,8 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "the S-tree threshold at several image sizes")
     baseline.add_argument("--out", default="results", help="output folder (default results; references are cached "
                           "under OUT/sdtree_baseline/references)")
-    baseline.add_argument("--part", choices=["all", "equal-spp", "threshold", "improved-preset", "bsdf-share"],
-                          default="all",
+    baseline.add_argument("--part", choices=["all", "equal-spp", "threshold", *SCENE_STUDIES], default="all",
                           help="which table to make (default all; improved-preset: sdtree with the learned BSDF share "
                           "and the stochastic spatial filter of Müller 2019, each and together, on the four shared "
                           "scenes, results/sdtree_improved_preset.md; bsdf-share: sdtree at fixed BSDF shares there, "
@@ -181,8 +181,8 @@ def build_parser() -> argparse.ArgumentParser:
                           help="spp of the `path` reference of the equal-spp table and of the threshold study's first "
                           "scale (default 131072)")
     baseline.add_argument("--preset-scenes", default=None,
-                          help="comma-separated NAME:SCALE list of the improved-preset and bsdf-share tables (default: the four shared "
-                          "scenes at the paper experiments' scales)")
+                          help="comma-separated NAME:SCALE list of the scenes of the improved-preset and bsdf-share "
+                          "tables (default: the four shared scenes at the paper experiments' scales)")
     baseline.add_argument("--threshold-scales", default="0.0625,0.125,0.25",
                           help="comma-separated scales of the threshold study (default 0.0625,0.125,0.25); their "
                           "references have the same samples per image as the first's")
@@ -432,12 +432,11 @@ def _command_sdtree_baseline(args) -> None:
     if not seeds or not all(scale > 0 for scale in scales):
         raise GuidingError("sdtree-baseline: give at least one seed, and scales > 0")
     from .bench_command import parse_scene_list
-    from .sdtree_baseline import (PRESET_SCENES, PRESET_VARIANTS, SHARE_VARIANTS, equal_spp_table, scenes_table,
-                                  threshold_table)
+    from .sdtree_baseline import PRESET_SCENES, equal_spp_table, scenes_table, threshold_table
 
-    preset_scenes = parse_scene_list(args.preset_scenes) if args.preset_scenes else list(PRESET_SCENES)
-    if args.part in ("all", "improved-preset", "bsdf-share"):
-        for name, _ in preset_scenes:
+    study_scenes = parse_scene_list(args.preset_scenes) if args.preset_scenes else list(PRESET_SCENES)
+    if args.part in ("all", *SCENE_STUDIES):
+        for name, _ in study_scenes:
             find_scene(name)
     variant = set_variant(args.variant, args.threads)
     out = prepare_output_dir(args.out)
@@ -466,25 +465,20 @@ def _command_sdtree_baseline(args) -> None:
                     "`stree_leaves`: leaves of the final S-tree, `last_threshold`: the vertices a leaf needed to "
                     "split at the last refinement", device, command, sections={"Runs": runs})
         print(summary.to_string(index=False))
-    scene_tables = {
-        "improved-preset": (PRESET_VARIANTS, "sdtree_improved_preset", "The SD-tree with the pieces of Müller 2019's "
-                            "improved preset, the BSDF share learned per D-tree (`sdtree-learned`) and the stochastic "
-                            "spatial filter, each and together, against Tom94's defaults (`sdtree`) and `brdf`"),
-        "bsdf-share": (SHARE_VARIANTS, "sdtree_bsdf_share", "The SD-tree at fixed BSDF shares (Tom94's 0.5 and "
-                       "around it) and with the learned share, against `brdf`")}
-    for part, (variants, name, title) in scene_tables.items():
+    scenes = ", ".join(f"{name} at scale {scale:g}" for name, scale in study_scenes)
+    for part, study in SCENE_STUDIES.items():
         if args.part not in ("all", part):
             continue
-        scenes = ", ".join(f"{name} at scale {scale:g}" for name, scale in preset_scenes)
-        summary, runs = scenes_table(preset_scenes, args.spp, seeds, args.reference_spp, cache, variants)
+        summary, runs = scenes_table(study_scenes, args.spp, seeds, args.reference_spp, cache, study.variants)
         command = (f"python -m guiding sdtree-baseline --part {part} --spp {args.spp} --seeds {args.seeds} "
                    f"--reference-spp {args.reference_spp}"
                    + (f" --preset-scenes {args.preset_scenes}" if args.preset_scenes else "")
                    + (f" --threads {args.threads}" if args.threads else ""))
-        write_table(summary, out / name, f"{title} at equal spp: {scenes}, {args.spp} spp, seeds {args.seeds}, MAE "
-                    f"against a {args.reference_spp}-spp `path` reference (`mae_vs_first`: relative to `brdf`; "
-                    "`break_even_cost`: the cost per spp relative to `brdf`'s below which a row would have the lower "
-                    "MAE at equal time, with MAE ∝ 1/sqrt(spp))", device, command, sections={"Runs": runs})
+        write_table(summary, out / study.output, f"{study.title} at equal spp: {scenes}, {args.spp} spp, seeds "
+                    f"{args.seeds}, MAE against a {args.reference_spp}-spp `path` reference (`mae_vs_first`: "
+                    "relative to `brdf`; `break_even_cost`: the cost per spp relative to `brdf`'s below which a row "
+                    "would have the lower MAE at equal time, with MAE ∝ 1/sqrt(spp))", device, command,
+                    sections={"Runs": runs})
         print(summary.to_string(index=False))
 
 

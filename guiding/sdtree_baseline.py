@@ -82,6 +82,32 @@ SHARE_VARIANTS = (Variant("brdf", "brdf"),
                   Variant("sdtree-learned", "sdtree-learned"))
 #: Their scenes, at the resolutions of the paper experiments (config/paper.yaml).
 PRESET_SCENES = (("cornell-box", 0.125), ("veach-ajar", 0.0625), ("staircase2", 0.0625), ("living-room", 0.0625))
+
+
+@dataclass(frozen=True)
+class SceneStudy:
+    """An equal-spp table over several scenes (:func:`scenes_table`; ``sdtree-baseline --part NAME``).
+
+    Parameters:
+      variants: its rows, ``brdf`` first.
+      output: the stem of its files in the output folder (``.md``, ``.csv``).
+      title: what its heading says the rows are.
+    """
+
+    variants: tuple[Variant, ...]
+    output: str
+    title: str
+
+
+#: The scene studies, by ``--part`` name.
+SCENE_STUDIES = {
+    "improved-preset": SceneStudy(PRESET_VARIANTS, "sdtree_improved_preset", "The SD-tree with the pieces of Müller "
+                                  "2019's improved preset, the BSDF share learned per D-tree (`sdtree-learned`) and "
+                                  "the stochastic spatial filter, each and together, against Tom94's defaults "
+                                  "(`sdtree`) and `brdf`"),
+    "bsdf-share": SceneStudy(SHARE_VARIANTS, "sdtree_bsdf_share", "The SD-tree at fixed BSDF shares (Tom94's 0.5 and "
+                             "around it) and with the learned share, against `brdf`"),
+}
 #: The S-tree constants of the threshold study: the default c = 12000, a quarter of it to four times it.
 THRESHOLD_CONSTANTS = (3000.0, 6000.0, 12000.0, 24000.0, 48000.0)
 

@@ -22,10 +22,10 @@ def test_sdtree_baseline_command_writes_its_tables(tmp_path):
     assert len(threshold) == 2 * len(THRESHOLD_CONSTANTS) and threshold["resolution"].nunique() == 2
     # the references of the study have the same samples per image at both sizes: 16 spp at 12 x 12, 8 at 17 x 17
     assert list(threshold["reference_spp"].unique()) == [16, 8]
-    share = pd.read_csv(tmp_path / "sdtree_improved_preset.csv")
-    assert list(share["variant"]) == 2 * [v.label for v in PRESET_VARIANTS]
-    assert list(share["scale"].unique()) == [0.05, 0.07]
-    assert share["mae"].notna().all() and (share["seeds"] == 2).all()
+    preset = pd.read_csv(tmp_path / "sdtree_improved_preset.csv")
+    assert list(preset["variant"]) == 2 * [v.label for v in PRESET_VARIANTS]
+    assert list(preset["scale"].unique()) == [0.05, 0.07]
+    assert preset["mae"].notna().all() and (preset["seeds"] == 2).all()
     shares = pd.read_csv(tmp_path / "sdtree_bsdf_share.csv")
     assert list(shares["variant"]) == 2 * [v.label for v in SHARE_VARIANTS]
     assert "bsdf_fraction=0.3" in set(shares["overrides"]) and shares["mae"].notna().all()
