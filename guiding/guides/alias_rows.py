@@ -40,14 +40,14 @@ def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Floa
     flat = dr.arange(mi.UInt32, rows * size)
     row_of, k = flat // size, flat % size
     w = mi.Float64(weight)
+    dr.eval(w)     # the callers' weights are expressions of gathers: computed once, not in every reduction below
     p = w * size / dr.gather(mi.Float64, dr.block_reduce(dr.ReduceOp.Add, w, size), row_of)   # mean 1 per row
     large = (p >= 1) | (p == dr.gather(mi.Float64, dr.block_reduce(dr.ReduceOp.Max, p, size), row_of))
-    small_list, small_count = _list(~large, flat, size)
-    large_list, large_count = _list(large, flat, size)
+    listed, small_count = _lists(large, flat, size)
     threshold = dr.select(large, mi.Float64(1), 0)
     alias = mi.UInt32(k)
-    dr.eval(p, threshold, alias, small_list, large_list)
-    received = _sweep(p, threshold, alias, small_list, small_count, large_list, large_count, size)
+    dr.eval(p, threshold, alias, listed)
+    received = _sweep(p, threshold, alias, listed, small_count, size)
 
     t = _as_sampled(threshold)
     first = row_of * size
@@ -61,13 +61,18 @@ def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Floa
     return slots
 
 
-def _list(member: mi.Bool, flat: mi.UInt32, size: int) -> tuple[mi.UInt32, mi.UInt32]:
-    """The bins of each row that are ``member``, in order, at the start of the row's stretch of the list; and
-    their number per row."""
-    position = dr.block_prefix_sum(mi.UInt32(member), size, exclusive=True)
-    listed = dr.zeros(mi.UInt32, dr.width(flat))
-    dr.scatter(listed, flat % size, flat // size * size + position, member)
-    return listed, dr.block_reduce(dr.ReduceOp.Add, mi.UInt32(member), size)
+def _lists(large: mi.Bool, flat: mi.UInt32, size: int) -> tuple[mi.UInt32, mi.UInt32]:
+    """Each row's bins in one stretch of ``size``: its small bins in order, then its large ones in order; and the
+    number of small bins per row (where the large ones start)."""
+    small = ~large
+    small_count = dr.block_reduce(dr.ReduceOp.Add, mi.UInt32(small), size)
+    position = dr.block_prefix_sum(mi.UInt32(small), size, exclusive=True)
+    row_of, k = flat // size, flat % size
+    # A large bin's place: after the row's small bins, behind the large bins before it (k − the small ones before it).
+    place = dr.select(small, position, dr.gather(mi.UInt32, small_count, row_of) + k - position)
+    listed = dr.empty(mi.UInt32, dr.width(flat))
+    dr.scatter(listed, k, row_of * size + place)
+    return listed, small_count
 
 
 def _as_sampled(threshold):
@@ -76,36 +81,39 @@ def _as_sampled(threshold):
 
 
 @dr.syntax
-def _sweep(p, threshold, alias, small_list, small_count, large_list, large_count, size: int) -> mi.Float64:
+def _sweep(p, threshold, alias, listed, small_count, size: int) -> mi.Float64:
     """Vose's pairing, one lane per row: writes the small bins' thresholds and aliases, and those of the large bins
     whose excess ran out (the others keep threshold 1). Returns what each bin receives from the slots that alias it,
     ``Σ (1 − t_j)`` with ``t_j`` as sampled (:func:`_as_sampled`), summed as the sweep hands the slots out (a large
-    bin is the alias of the slots handed to it while it is the current one), not by an atomic add per slot."""
+    bin is the alias of the slots handed to it while it is the current one), not by an atomic add per slot.
+
+    ``listed``: each row's small bins, then its large ones (:func:`_lists`). A step either hands the next small bin
+    to the current large bin (give) or, once the current one's excess is below 1, turns it small, aliased to the next
+    large bin (turn): never both, so a step reads one list entry and one probability, and writes one slot."""
     received_by = dr.zeros(mi.Float64, dr.width(p))
     first = dr.arange(mi.UInt32, dr.width(small_count)) * size
+    large_count = size - small_count
     taken, converted = mi.UInt32(0), mi.UInt32(0)        # small bins handed out; large bins turned small
-    current = dr.gather(mi.UInt32, large_list, first)
+    current = dr.gather(mi.UInt32, listed, first + small_count)
     excess = dr.gather(mi.Float64, p, first + current)   # the current large bin's probability not yet in a slot
     received = mi.Float64(0)                             # what the current large bin's aliasing slots add to it
     going = mi.Bool(True)
     while going:
         turn = (excess < 1) & (converted + 1 < large_count)
         give = ~turn & (taken < small_count)
-        following = dr.gather(mi.UInt32, large_list, first + converted + 1, turn)
-        dr.scatter(threshold, excess, first + current, turn)
-        dr.scatter(alias, following, first + current, turn)
-        small = dr.gather(mi.UInt32, small_list, first + taken, give)
-        share = dr.gather(mi.Float64, p, first + small, give)
-        dr.scatter(threshold, share, first + small, give)
-        dr.scatter(alias, current, first + small, give)
+        going = turn | give
+        following = dr.gather(mi.UInt32, listed, first + dr.select(turn, small_count + converted + 1, taken), going)
+        mass = dr.gather(mi.Float64, p, first + following, going)
+        # turn: the current bin's slot keeps its excess and is aliased to the following large bin; give: the
+        # following small bin's slot keeps its probability and is aliased to the current bin.
+        dr.scatter(threshold, dr.select(turn, excess, mass), first + dr.select(turn, current, following), going)
+        dr.scatter(alias, dr.select(turn, following, current), first + dr.select(turn, current, following), going)
         received = dr.select(turn, 1 - mi.Float64(_as_sampled(excess)),
-                             dr.select(give, received + (1 - mi.Float64(_as_sampled(share))), received))
-        excess = dr.select(turn, dr.gather(mi.Float64, p, first + following, turn) - (1 - excess),
-                           dr.select(give, excess - (1 - share), excess))
+                             dr.select(give, received + (1 - mi.Float64(_as_sampled(mass))), received))
+        excess = dr.select(turn, mass - (1 - excess), dr.select(give, excess - (1 - mass), excess))
         current = dr.select(turn, following, current)
         converted += dr.select(turn, 1, 0)
         taken += dr.select(give, 1, 0)
-        going = turn | give
         # The current bin's running sum, written at every step: final when the sweep moves on from the bin (a turn
         # adds nothing to it first) or ends, and nothing of the loop's state is read after it (that would trace the
         # loop into a second kernel).

@@ -409,6 +409,8 @@ class RadianceRecord:
         p = dr.gather(mi.Float, self.policy, cell * B + k, held)
         cos_integral = dr.gather(mi.Float, self.cos_integral, nb * B + k, held)
         max_cos = dr.gather(mi.Float, self.max_cos, nb * B + k, held)
+        # Evaluated once: every reduction below would otherwise repeat the gathers in its own kernel.
+        dr.eval(cell, nb, k, p, cos_integral, max_cos)
 
         norm = dr.block_reduce(dr.ReduceOp.Add, p * cos_integral, length)
         bound = dr.block_reduce(dr.ReduceOp.Max, p * max_cos, length)
