@@ -434,8 +434,9 @@ def _command_sdtree_baseline(args) -> None:
     from .bench_command import parse_scene_list
     from .sdtree_baseline import PRESET_SCENES, equal_spp_table, scenes_table, threshold_table
 
+    studies = {part: study for part, study in SCENE_STUDIES.items() if args.part in ("all", part)}
     study_scenes = parse_scene_list(args.preset_scenes) if args.preset_scenes else list(PRESET_SCENES)
-    if args.part in ("all", *SCENE_STUDIES):
+    if studies:
         for name, _ in study_scenes:
             find_scene(name)
     variant = set_variant(args.variant, args.threads)
@@ -466,9 +467,7 @@ def _command_sdtree_baseline(args) -> None:
                     "split at the last refinement", device, command, sections={"Runs": runs})
         print(summary.to_string(index=False))
     scenes = ", ".join(f"{name} at scale {scale:g}" for name, scale in study_scenes)
-    for part, study in SCENE_STUDIES.items():
-        if args.part not in ("all", part):
-            continue
+    for part, study in studies.items():
         summary, runs = scenes_table(study_scenes, args.spp, seeds, args.reference_spp, cache, study.variants)
         command = (f"python -m guiding sdtree-baseline --part {part} --spp {args.spp} --seeds {args.seeds} "
                    f"--reference-spp {args.reference_spp}"

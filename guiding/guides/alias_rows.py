@@ -43,7 +43,7 @@ def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Floa
     dr.eval(w)     # the callers' weights are expressions of gathers: computed once, not in every reduction below
     p = w * size / dr.gather(mi.Float64, dr.block_reduce(dr.ReduceOp.Add, w, size), row_of)   # mean 1 per row
     large = (p >= 1) | (p == dr.gather(mi.Float64, dr.block_reduce(dr.ReduceOp.Max, p, size), row_of))
-    listed, small_count = _lists(large, flat, size)
+    listed, small_count = _lists(large, row_of, k, size)
     threshold = dr.select(large, mi.Float64(1), 0)
     alias = mi.UInt32(k)
     dr.eval(p, threshold, alias, listed)
@@ -61,16 +61,15 @@ def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Floa
     return slots
 
 
-def _lists(large: mi.Bool, flat: mi.UInt32, size: int) -> tuple[mi.UInt32, mi.UInt32]:
-    """Each row's bins in one stretch of ``size``: its small bins in order, then its large ones in order; and the
-    number of small bins per row (where the large ones start)."""
+def _lists(large: mi.Bool, row_of: mi.UInt32, k: mi.UInt32, size: int) -> tuple[mi.UInt32, mi.UInt32]:
+    """Each row's bins (bin ``k`` of row ``row_of`` per slot) in one stretch of ``size``: its small bins in order,
+    then its large ones in order; and the number of small bins per row (where the large ones start)."""
     small = ~large
     small_count = dr.block_reduce(dr.ReduceOp.Add, mi.UInt32(small), size)
     position = dr.block_prefix_sum(mi.UInt32(small), size, exclusive=True)
-    row_of, k = flat // size, flat % size
     # A large bin's place: after the row's small bins, behind the large bins before it (k − the small ones before it).
     place = dr.select(small, position, dr.gather(mi.UInt32, small_count, row_of) + k - position)
-    listed = dr.empty(mi.UInt32, dr.width(flat))
+    listed = dr.empty(mi.UInt32, dr.width(k))
     dr.scatter(listed, k, row_of * size + place)
     return listed, small_count
 
@@ -106,8 +105,9 @@ def _sweep(p, threshold, alias, listed, small_count, size: int) -> mi.Float64:
         mass = dr.gather(mi.Float64, p, first + following, going)
         # turn: the current bin's slot keeps its excess and is aliased to the following large bin; give: the
         # following small bin's slot keeps its probability and is aliased to the current bin.
-        dr.scatter(threshold, dr.select(turn, excess, mass), first + dr.select(turn, current, following), going)
-        dr.scatter(alias, dr.select(turn, following, current), first + dr.select(turn, current, following), going)
+        slot = first + dr.select(turn, current, following)
+        dr.scatter(threshold, dr.select(turn, excess, mass), slot, going)
+        dr.scatter(alias, dr.select(turn, following, current), slot, going)
         received = dr.select(turn, 1 - mi.Float64(_as_sampled(excess)),
                              dr.select(give, received + (1 - mi.Float64(_as_sampled(mass))), received))
         excess = dr.select(turn, mass - (1 - excess), dr.select(give, excess - (1 - mass), excess))
