@@ -11,6 +11,7 @@ import ctypes
 import io
 import json
 import os
+import secrets
 import sys
 import tempfile
 from pathlib import Path
@@ -38,12 +39,13 @@ def atomic_outputs(*paths: str | os.PathLike):
     temporaries, renamed = [], []
     try:
         for path in paths:
-            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-            os.close(fd)
+            # Listed before it exists: a Ctrl-C between its creation and its listing (mkstemp's) left it behind.
+            tmp = str(path.parent / f".{path.name}.{secrets.token_hex(8)}.tmp{path.suffix}")
             temporaries.append(tmp)
+            open(tmp, "x").close()
         yield temporaries
         for tmp, path in zip(temporaries, paths):
-            os.chmod(tmp, 0o644)  # an ordinary file (mkstemp's 0600 would hide results from other users)
+            os.chmod(tmp, 0o644)  # an ordinary file, readable by other users whatever the umask
             os.replace(tmp, path)
             renamed.append(path)
     except BaseException:
