@@ -208,6 +208,7 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
             guide = getattr(integrators[method], "guide", None)
             memory = guide.stats().get("memory_bytes", 0) if guide is not None else 0
             total = sum(r.wall + r.update for r in records)
+            nothing_to_guide = method not in ("path", TRACE_ONLY, "brdf") and not guide.guides_any(scene)
             rows.append({
                 "scene": name, "resolution": _resolution(scene), "method": method,
                 "kernel_ms_per_spp": 1e3 * kernel_per_spp[method],
@@ -225,10 +226,12 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
                 if method != "path" else None,
                 "Mrays_per_s": mrays,
                 "share_of_trace_limit": mrays * 1e6 / trace_rays_per_s if mrays is not None else None,
-                "guided_per_ray": sum(r.guided for r in counted) / max(sum(r.rays for r in counted), 1)
+                # A scene with nothing to guide: the pass driver drops the guide, whose counters never run.
+                "guided_per_ray": 0.0 if nothing_to_guide else
+                sum(r.guided for r in counted) / max(sum(r.rays for r in counted), 1)
                 if counted[-1].guided is not None else None,
                 "memo_pairs": records[-1].memo_pairs,
-                "nothing_to_guide": method not in ("path", TRACE_ONLY, "brdf") and not guide.guides_any(scene),
+                "nothing_to_guide": nothing_to_guide,
             })
     return pd.DataFrame(rows), pd.DataFrame(breakdown_rows)
 

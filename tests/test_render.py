@@ -249,3 +249,16 @@ def test_a_scene_with_instances_counts_as_guided():
                           "copy": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"}}})
     assert make_guide("ours").guides_any(scene)
 
+
+
+def test_a_scene_with_nothing_to_guide_never_updates_the_guide():
+    """mirror-box holds delta lobes only: the passes are BSDF sampling, the guide is never updated (it would rebuild
+    empty tables after every pass), and the passes grow as a guide-less render's do."""
+    from guiding.methods import make_guide
+    from guiding.scenes import load_scene
+
+    integrator = GuidedPathIntegrator(guide=make_guide("ours"))
+    result = render(load_scene("mirror-box", 1 / 16), integrator, Budget(spp=64, pass_spp=8), seed=0)
+    assert not integrator.guide.trained
+    assert [p.spp for p in result.passes] == [8, 16, 32, 8]
+    assert all(not p.guide for p in result.passes)
