@@ -226,14 +226,21 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
                 if method != "path" else None,
                 "Mrays_per_s": mrays,
                 "share_of_trace_limit": mrays * 1e6 / trace_rays_per_s if mrays is not None else None,
-                # A scene with nothing to guide: the pass driver drops the guide, whose counters never run.
-                "guided_per_ray": 0.0 if nothing_to_guide else
-                sum(r.guided for r in counted) / max(sum(r.rays for r in counted), 1)
-                if counted[-1].guided is not None else None,
+                "guided_per_ray": _guided_per_ray(counted, nothing_to_guide),
                 "memo_pairs": records[-1].memo_pairs,
                 "nothing_to_guide": nothing_to_guide,
             })
     return pd.DataFrame(rows), pd.DataFrame(breakdown_rows)
+
+
+def _guided_per_ray(records: list, nothing_to_guide: bool) -> float | None:
+    """Guided vertices per ray traced, from the guide's pass counters (None where the guide has none); 0 in a scene
+    with nothing to guide, whose passes run without the guide (the pass driver drops it: no counter runs)."""
+    if nothing_to_guide:
+        return 0.0
+    if records[-1].guided is None:
+        return None
+    return sum(r.guided for r in records) / max(sum(r.rays for r in records), 1)
 
 
 #: The pass modes ``bench --part pass-schedule`` compares: (growing passes, frozen passes). ``fixed``: passes of 8 spp,

@@ -94,13 +94,13 @@ class PassDriver:
         """Before the first pass: the integrator and its guide prepare for the scene (``prepare``), and the guide
         learns the spp budget (None: a time budget). In a scene with nothing to guide (``Guide.guides_any``) the
         driver drops the guide: its passes are BSDF sampling, and nothing updates between them."""
-        if self.guide is not None:
+        guide = getattr(self.integrator, "guide", None)
+        if guide is not None:
             self.integrator.prepare(self.scene)
-            self.guide.set_budget(spp_budget)
-            if self.integrator.path_guide is not self.guide:
-                # Nothing in the scene to guide: the passes trace BSDF sampling and record nothing, so the guide's
-                # update would only rebuild empty tables after every pass (and keep passes from growing).
-                self.guide = None
+            guide.set_budget(spp_budget)
+            # Nothing in the scene to guide: the passes trace BSDF sampling and record nothing, so the guide's
+            # update would only rebuild empty tables after every pass (and keep passes from growing).
+            self.guide = guide if self.integrator.path_guide is guide else None
         self.spp_done = 0
 
     def run(self, seed: int, spp: int, accumulate: Callable[[mi.TensorXf], None] | None = None) -> PassOutcome:

@@ -3,7 +3,8 @@ parsing of its kernel-size and profile parts."""
 
 import pytest
 
-from guiding.bench import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, benchmark, target_table)
+from guiding.bench import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, PassTiming, _guided_per_ray,
+                           benchmark, target_table)
 from guiding.bench_child import child_failure
 from guiding.cpu_profile import parse_report, profile_table, table_access_share
 from guiding.errors import GuidingError
@@ -30,7 +31,7 @@ def test_breakdown_table_shape():
         for _, row in rows[rows["stage"].isin(OUTSIDE_SEQUENCE)].iterrows():
             own = rows.set_index("integrator").loc[method, "ratio_to_brdf"]
             assert abs(own + row["increment_ratio"] - row["ratio_to_brdf"]) < 1e-9
-    # The statistics variant supplies the guided share (zero: glossy-box has no guidable surface).
+    # Zero: glossy-box has nothing ours guides, so its passes run without the guide (and its counters).
     assert frame.set_index("method").loc["ours", "guided_per_ray"] == 0
     # glossy-box has nothing to guide for ours (purely diffuse surfaces only), but glossy lobes for the SD-tree.
     assert frame.set_index("method")["nothing_to_guide"].to_dict() == {
@@ -39,6 +40,14 @@ def test_breakdown_table_shape():
     nothing = targets[targets["target"].str.startswith("nothing to guide")]
     assert list(nothing["target"]) == ["nothing to guide: `ours` ≤ 1.05× `brdf`"]
     assert "`sdtree` ≤ 1.3× `brdf` per spp" in set(targets["target"])
+
+
+def test_guided_per_ray_sums_the_counted_passes():
+    passes = [PassTiming(wall=1, kernel=1, compile=0, update=0, refine=0, rays=rays, guided=guided)
+              for rays, guided in ((100, 30), (300, 10))]
+    assert _guided_per_ray(passes, nothing_to_guide=False) == pytest.approx(40 / 400)
+    assert _guided_per_ray(passes, nothing_to_guide=True) == 0
+    assert _guided_per_ray([PassTiming(wall=1, kernel=1, compile=0, update=0, refine=0)], False) is None
 
 
 @pytest.mark.parametrize("scene_name, guided", [("mirror-box", set()), ("glossy-box", {"ours-plus", "sdtree",

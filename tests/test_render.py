@@ -250,7 +250,6 @@ def test_a_scene_with_instances_counts_as_guided():
     assert make_guide("ours").guides_any(scene)
 
 
-
 def test_a_scene_with_nothing_to_guide_never_updates_the_guide():
     """mirror-box holds delta lobes only: the passes are BSDF sampling, the guide is never updated (it would rebuild
     empty tables after every pass), and the passes grow as a guide-less render's do."""
