@@ -208,7 +208,7 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
             guide = getattr(integrators[method], "guide", None)
             memory = guide.stats().get("memory_bytes", 0) if guide is not None else 0
             total = sum(r.wall + r.update for r in records)
-            nothing_to_guide = method not in ("path", TRACE_ONLY, "brdf") and not guide.guides_any(scene)
+            nothing_to_guide = method not in ("path", TRACE_ONLY, "brdf") and not integrators[method].guides_scene
             rows.append({
                 "scene": name, "resolution": _resolution(scene), "method": method,
                 "kernel_ms_per_spp": 1e3 * kernel_per_spp[method],

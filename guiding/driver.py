@@ -100,7 +100,7 @@ class PassDriver:
             guide.set_budget(spp_budget)
             # Nothing in the scene to guide: the passes trace BSDF sampling and record nothing, so the guide's
             # update would only rebuild empty tables after every pass (and keep passes from growing).
-            self.guide = guide if self.integrator.path_guide is guide else None
+            self.guide = guide if self.integrator.guides_scene else None
         self.spp_done = 0
 
     def run(self, seed: int, spp: int, accumulate: Callable[[mi.TensorXf], None] | None = None) -> PassOutcome:

@@ -104,6 +104,12 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         self.path_guide = self.guide if self.guide.guides_any(scene) else _BSDF_SAMPLING
         self.frozen_passes = FrozenPasses(self, scene, _PassRenderer) if self.freeze and recordable(scene) else None
 
+    @property
+    def guides_scene(self) -> bool:
+        """Whether the passes on the scene last prepared use the guide (False where it has nothing to guide, and
+        for ``brdf``, whose guide guides nothing): the pass driver updates the guide only then."""
+        return self.path_guide is self.guide
+
     def reset_counters(self) -> None:
         self.path_count = mi.UInt32(0)
         self.hit_count = mi.UInt32(0)
