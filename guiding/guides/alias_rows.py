@@ -39,36 +39,52 @@ def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Floa
     rows = dr.width(weight) // size
     flat = dr.arange(mi.UInt32, rows * size)
     row_of, k = flat // size, flat % size
-    w = mi.Float64(weight)
+    w = mi.Float(weight)
     dr.eval(w)     # the callers' weights are expressions of gathers: computed once, not in every reduction below
-    p = w * size / dr.gather(mi.Float64, dr.block_reduce(dr.ReduceOp.Add, w, size), row_of)   # mean 1 per row
-    large = (p >= 1) | (p == dr.gather(mi.Float64, dr.block_reduce(dr.ReduceOp.Max, p, size), row_of))
-    listed, small_count = _lists(large, row_of, k, size)
-    threshold = dr.select(large, mi.Float64(1), 0)
-    alias = mi.UInt32(k)
-    dr.eval(p, threshold, alias, listed)
-    received = _sweep(p, threshold, alias, listed, small_count, size)
+    row_sum = dr.block_reduce(dr.ReduceOp.Add, mi.Float64(w), size)
+    large = (_probability(w, row_sum, row_of, size) >= 1) | (w == dr.gather(mi.Float, block_max(w, size), row_of))
+    small = mi.UInt32(~large)
+    dr.eval(small)
+    listed, small_count = _lists(small, row_of, k, size)
+    threshold = dr.select(small == 0, mi.Float(1), 0)
+    alias = dr.select(small == 0, k, 0)    # its own variable: the sweep writes in place (a scatter into k copies k)
+    received = dr.zeros(mi.Float64, rows * size)
+    dr.make_opaque(received)       # zeroed once here (scattered into by the sweep's loop as a literal, it was twice)
+    dr.eval(threshold, alias, listed)
+    _sweep(w, row_sum, threshold, alias, received, listed, small_count, size)
 
-    t = _as_sampled(threshold)
     first = row_of * size
-    probability = mi.Float64(t) + received
-    density = mi.Float(probability / size) * scale
+    density = mi.Float((mi.Float64(threshold) + received) / size) * scale
     # Every slot is written, whole, by one packet scatter: no zeroing pass, one pass over the table.
     slots = dr.empty(mi.Float, SLOT_FIELDS * rows * size)
-    dr.scatter(slots, mi.Vector4f(t, dr.reinterpret_array(mi.Float, alias), density,
+    dr.scatter(slots, mi.Vector4f(threshold, dr.reinterpret_array(mi.Float, alias), density,
                                   dr.gather(mi.Float, density, first + alias)), flat)
     dr.eval(slots)
     return slots
 
 
-def _lists(large: mi.Bool, row_of: mi.UInt32, k: mi.UInt32, size: int) -> tuple[mi.UInt32, mi.UInt32]:
-    """Each row's bins (bin ``k`` of row ``row_of`` per slot) in one stretch of ``size``: its small bins in order,
-    then its large ones in order; and the number of small bins per row (where the large ones start)."""
-    small = ~large
-    small_count = dr.block_reduce(dr.ReduceOp.Add, mi.UInt32(small), size)
-    position = dr.block_prefix_sum(mi.UInt32(small), size, exclusive=True)
+def block_max(values: mi.Float, size: int) -> mi.Float:
+    """The largest of each block of ``size`` non-negative floats, from their bits: such floats order as their bit
+    patterns (the sign bit cleared, for −0), and a block maximum over integers took a sixth of the time of one over
+    floats (CPU)."""
+    bits = dr.reinterpret_array(mi.UInt32, values) & 0x7FFFFFFF
+    return dr.reinterpret_array(mi.Float, dr.block_reduce(dr.ReduceOp.Max, bits, size))
+
+
+def _probability(w: mi.Float, row_sum: mi.Float64, row: mi.UInt32, size: int) -> mi.Float64:
+    """Weights ``w`` of rows ``row`` (sums ``row_sum``) as probabilities of mean 1 per row, in float64."""
+    return mi.Float64(w) * size / dr.gather(mi.Float64, row_sum, row)
+
+
+def _lists(small: mi.UInt32, row_of: mi.UInt32, k: mi.UInt32, size: int) -> tuple[mi.UInt32, mi.UInt32]:
+    """Each row's bins (bin ``k`` of row ``row_of`` per slot, 1 in ``small`` where it is small) in one stretch of
+    ``size``: its small bins in order, then its large ones in order; and the number of small bins per row (where the
+    large ones start)."""
+    position = dr.block_prefix_sum(small, size, exclusive=True)
+    last = dr.arange(mi.UInt32, dr.width(k) // size) * size + size - 1
+    small_count = dr.gather(mi.UInt32, position, last) + dr.gather(mi.UInt32, small, last)
     # A large bin's place: after the row's small bins, behind the large bins before it (k − the small ones before it).
-    place = dr.select(small, position, dr.gather(mi.UInt32, small_count, row_of) + k - position)
+    place = dr.select(small != 0, position, dr.gather(mi.UInt32, small_count, row_of) + k - position)
     listed = dr.empty(mi.UInt32, dr.width(k))
     dr.scatter(listed, k, row_of * size + place)
     return listed, small_count
@@ -80,21 +96,22 @@ def _as_sampled(threshold):
 
 
 @dr.syntax
-def _sweep(p, threshold, alias, listed, small_count, size: int) -> mi.Float64:
-    """Vose's pairing, one lane per row: writes the small bins' thresholds and aliases, and those of the large bins
-    whose excess ran out (the others keep threshold 1). Returns what each bin receives from the slots that alias it,
-    ``Σ (1 − t_j)`` with ``t_j`` as sampled (:func:`_as_sampled`), summed as the sweep hands the slots out (a large
-    bin is the alias of the slots handed to it while it is the current one), not by an atomic add per slot.
+def _sweep(w, row_sum, threshold, alias, received_by, listed, small_count, size: int) -> None:
+    """Vose's pairing, one lane per row (weights ``w``, their sums ``row_sum``): writes the small bins' thresholds
+    and aliases, and those of the large bins whose excess ran out (the others keep threshold 1), thresholds as
+    sampled (:func:`_as_sampled`). Writes to ``received_by`` what each bin receives from the slots that alias it,
+    ``Σ (1 − t_j)``, summed as the sweep hands the slots out (a large bin is the alias of the slots handed to it while
+    it is the current one), not by an atomic add per slot.
 
     ``listed``: each row's small bins, then its large ones (:func:`_lists`). A step either hands the next small bin
     to the current large bin (give) or, once the current one's excess is below 1, turns it small, aliased to the next
-    large bin (turn): never both, so a step reads one list entry and one probability, and writes one slot."""
-    received_by = dr.zeros(mi.Float64, dr.width(p))
+    large bin (turn): never both, so a step reads one list entry and one weight, and writes one slot."""
     first = dr.arange(mi.UInt32, dr.width(small_count)) * size
     large_count = size - small_count
     taken, converted = mi.UInt32(0), mi.UInt32(0)        # small bins handed out; large bins turned small
     current = dr.gather(mi.UInt32, listed, first + small_count)
-    excess = dr.gather(mi.Float64, p, first + current)   # the current large bin's probability not yet in a slot
+    # The current large bin's probability not yet in a slot (probabilities as _probability computes them).
+    excess = mi.Float64(dr.gather(mi.Float, w, first + current)) * size / row_sum
     received = mi.Float64(0)                             # what the current large bin's aliasing slots add to it
     going = mi.Bool(True)
     while going:
@@ -102,14 +119,14 @@ def _sweep(p, threshold, alias, listed, small_count, size: int) -> mi.Float64:
         give = ~turn & (taken < small_count)
         going = turn | give
         following = dr.gather(mi.UInt32, listed, first + dr.select(turn, small_count + converted + 1, taken), going)
-        mass = dr.gather(mi.Float64, p, first + following, going)
+        mass = mi.Float64(dr.gather(mi.Float, w, first + following, going)) * size / row_sum
         # turn: the current bin's slot keeps its excess and is aliased to the following large bin; give: the
         # following small bin's slot keeps its probability and is aliased to the current bin.
         slot = first + dr.select(turn, current, following)
-        dr.scatter(threshold, dr.select(turn, excess, mass), slot, going)
+        kept = _as_sampled(dr.select(turn, excess, mass))
+        dr.scatter(threshold, kept, slot, going)
         dr.scatter(alias, dr.select(turn, following, current), slot, going)
-        received = dr.select(turn, 1 - mi.Float64(_as_sampled(excess)),
-                             dr.select(give, received + (1 - mi.Float64(_as_sampled(mass))), received))
+        received = dr.select(turn, 0, received) + dr.select(going, 1 - mi.Float64(kept), 0)
         excess = dr.select(turn, mass - (1 - excess), dr.select(give, excess - (1 - mass), excess))
         current = dr.select(turn, following, current)
         converted += dr.select(turn, 1, 0)
@@ -118,7 +135,6 @@ def _sweep(p, threshold, alias, listed, small_count, size: int) -> mi.Float64:
         # adds nothing to it first) or ends, and nothing of the loop's state is read after it (that would trace the
         # loop into a second kernel).
         dr.scatter(received_by, received, first + current)
-    return received_by
 
 
 def sample(slots: mi.Float, row: mi.UInt32, size: int, u: mi.Point2f,

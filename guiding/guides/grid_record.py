@@ -16,10 +16,11 @@ the (cell, normal bin) pairs the last passes visited:
 - ``value`` V = ∫_H Q·cos dω, Expected SARSA's expectation,
 - ``hemi_alias``, the alias table (:mod:`~guiding.guides.alias_rows`) of P·∫_bin cos over the bins (``hemi_inv``,
   and the ``bins`` proposal of the rejection samplers), one row per visited pair only (469 rows on cornell-box at
-  S = 8, against the 76 800 pairs of the grid), and in a row only the bins its normal bin reaches (``row_bins``:
-  those with a direction above the horizon of some normal of the normal bin, 368 of D = 16's 512 at most; the
-  others have nothing to draw, and the rebuild after every pass need not build their slots); a slot's read gives
-  the drawn bin with its density:
+  S = 8, against the 76 800 pairs of the grid), and in a row only the bins it can draw (``row_bins``: for hemi_inv
+  those with a direction above the horizon of some normal of the normal bin, 368 of D = 16's 512 at most; for the
+  rejection target those above the horizon of the normal bin's centre, 286 at most; the others have nothing to
+  draw, and the rebuild after every pass need not build their slots); a slot's read gives the drawn bin with its
+  density:
   ``P_k·s_k`` per unit cos⁺(ω, n_c) for the ``bins`` proposal (``P_k`` alone for a refined bin, whose sub-bin
   density multiplies it), ``P_k/A`` per steradian for ``hemi_inv``.
 
@@ -169,7 +170,10 @@ class RadianceRecord:
             self.cos_integral, self.max_cos = self._cosine_tables()
             self.in_bin_bound, self.in_bin_scale, self.in_bin_misses = (self._in_bin_tables() if needs_in_bin
                                                                         else (None, None, None))
-            self.row_bins, self.row_slots, self.row_length = self._row_layout()
+            reach = self._row_layout(self.max_cos)
+            self.reach_bins, self.reach_length = reach[0], reach[2]
+            self.row_bins, self.row_slots, self.row_length = (self._row_layout(self.cos_integral) if needs_in_bin
+                                                              else reach)
         self.refinement = (BinRefinement(self.bins, C * B, sub_resolution, refine_share, refine_capacity)
                            if sub_resolution > 1 else None)
         self.sub_resolution = sub_resolution
@@ -304,15 +308,19 @@ class RadianceRecord:
         gain = np.where(a > 1e-12, (1.0 - miss) / np.maximum(a, 1e-300), float(IN_BIN_PROPOSALS))
         return tuple(mi.Float(t.astype(np.float32)) for t in (bound, gain / (area * bound), miss))
 
-    def _row_layout(self) -> tuple[mi.UInt32, mi.UInt32, int]:
-        """Which bins the rows of a normal bin hold: those with ``max_cos`` > 0 (above the horizon of some normal of
-        the normal bin; any other has weight 0 for every sampler), in order, padded with ``B`` (no bin, weight 0) to
-        the largest count, the row length L. Returns the bins (``nb·L + slot``), the slot of every bin (``nb·B + k``;
-        NO_SLOT where not held) and L."""
+    def _row_layout(self, table: mi.Float) -> tuple[mi.UInt32, mi.UInt32, int]:
+        """Rows of the bins of each normal bin whose entry in ``table`` (a per-(normal bin, bin) table) is positive,
+        in order, padded with ``B`` (no bin, weight 0) to the largest count, the row length L. Returns the bins
+        (``nb·L + slot``), the slot of every bin (``nb·B + k``; NO_SLOT where not held) and L.
+
+        With ``max_cos``, the bins above the horizon of some normal of the normal bin (``reach_bins``: M's maximum
+        runs over them, and hemi_inv's rows hold them all); with ``cos_integral``, those above the horizon of its
+        centre, the only ones the rejection target can draw (the rows of the ``bins`` proposal: 286 of 368 at D = 16,
+        a quarter less to rebuild after every pass)."""
         import numpy as np
 
         B, NB = self.bins.count, self.normal_bins.count
-        held = np.array(self.max_cos).reshape(NB, B) > 0
+        held = np.array(table).reshape(NB, B) > 0
         length = max(int(held.sum(axis=1).max()), 1)
         nb, k = np.nonzero(held)                        # row by row, bins in order
         slot = (np.cumsum(held, axis=1) - 1)[nb, k]
@@ -399,21 +407,19 @@ class RadianceRecord:
                                f"{row_bytes / 2 ** 30:.1f} GiB to build, over the "
                                f"{self.row_memory_limit / 2 ** 30:.1f} GiB left by the memory limit; lower S or D, "
                                "or raise the limit")
-        # One entry per slot of the pairs' rows (_row_layout): N, M and V sum over the bins a row holds, the
-        # others adding nothing (their cosines are 0).
-        flat = dr.arange(mi.UInt32, count * length)
-        pair = dr.gather(mi.UInt32, pairs, flat // length)
-        cell, nb = pair // NB, pair % NB
-        k = dr.gather(mi.UInt32, self.row_bins, nb * length + flat % length)
-        held = k < B
+        # One entry per slot of the pairs' rows (_row_layout): N and V sum over the bins a row holds, the others
+        # adding nothing (their cosines at the normal bin's centre are 0); M's maximum runs over every bin some
+        # normal of the normal bin reaches (reach_bins).
+        cell, nb, k, held = self._row_entries(pairs, self.row_bins, length)
         p = dr.gather(mi.Float, self.policy, cell * B + k, held)
         cos_integral = dr.gather(mi.Float, self.cos_integral, nb * B + k, held)
-        max_cos = dr.gather(mi.Float, self.max_cos, nb * B + k, held)
         # Evaluated once: every reduction below would otherwise repeat the gathers in its own kernel.
-        dr.eval(cell, nb, k, p, cos_integral, max_cos)
+        dr.eval(cell, nb, k, p, cos_integral)
 
         norm = dr.block_reduce(dr.ReduceOp.Add, p * cos_integral, length)
-        bound = dr.block_reduce(dr.ReduceOp.Max, p * max_cos, length)
+        r_cell, r_nb, r_k, r_held = self._row_entries(pairs, self.reach_bins, self.reach_length)
+        bound = alias_rows.block_max(dr.gather(mi.Float, self.policy, r_cell * B + r_k, r_held)
+                                     * dr.gather(mi.Float, self.max_cos, r_nb * B + r_k, r_held), self.reach_length)
         row, in_bin_miss = dr.zeros(mi.UInt32, count), dr.zeros(mi.Float, count)
         if self.needs_value:
             q = dr.gather(mi.Float, self.q, cell * B + k, held)
@@ -426,16 +432,25 @@ class RadianceRecord:
                 if self.refinement:     # a refined bin draws its direction without rejection, from its sub-bins
                     refined = self.refinement.sampled(cell * B + k, held)
                     miss, scale = dr.select(refined, 0, miss), dr.select(refined, 1, scale)
-                total = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, weight, length), flat // length)
-                in_bin_miss = dr.block_reduce(dr.ReduceOp.Add, weight / total * miss, length)
-            else:
-                weight = p * dr.maximum(cos_integral, dr.select(max_cos > 0, REACHABLE_FLOOR * self.bins.solid_angle, 0))
+                in_bin_miss = dr.block_reduce(dr.ReduceOp.Add, weight * miss, length) / norm
+            else:      # the rows hold the bins reach_bins holds: those of max_cos > 0
+                weight = p * dr.maximum(cos_integral, dr.select(held, REACHABLE_FLOOR * self.bins.solid_angle, 0))
                 scale = 1 / self.bins.solid_angle
             self.hemi_alias = alias_rows.build(weight, length, scale)
             row = dr.arange(mi.UInt32, count)
         dr.scatter(self.pair_memo, mi.Vector4f(norm, dr.reinterpret_array(mi.Float, row), bound, in_bin_miss), pairs)
         dr.eval(self.pair_memo, self.value, self.hemi_alias)
         return count
+
+    def _row_entries(self, pairs: mi.UInt32, bins: mi.UInt32, length: int):
+        """Per slot of the rows of ``pairs`` in a layout (``bins``, ``length``: :meth:`_row_layout`): its cell,
+        normal bin and bin, and whether it holds a bin (not padding)."""
+        NB = self.normal_bins.count
+        flat = dr.arange(mi.UInt32, dr.width(pairs) * length)
+        pair = dr.gather(mi.UInt32, pairs, flat // length)
+        cell, nb = pair // NB, pair % NB
+        k = dr.gather(mi.UInt32, bins, nb * length + flat % length)
+        return cell, nb, k, k < self.bins.count
 
     @staticmethod
     def planned_bytes(spatial_resolution: int, directional_resolution: int, normal_resolution: int = 5,
@@ -451,8 +466,8 @@ class RadianceRecord:
         if needs_cell_alias:
             total += alias_rows.SLOT_BYTES * C * B               # the cells' alias tables
         if needs_memo or needs_hemi_alias or needs_in_bin or needs_value:
-            # cosine and in-bin tables, and the row layout (row_bins at most NB·B)
-            total += 4 * ((PAIR_FIELDS + 2) * C * NB + (7 if needs_in_bin else 4) * NB * B)
+            # cosine and in-bin tables, and the row layouts (row_bins and reach_bins at most NB·B each)
+            total += 4 * ((PAIR_FIELDS + 2) * C * NB + (8 if needs_in_bin else 4) * NB * B)
             total += alias_rows.SLOT_BYTES * B if needs_hemi_alias else 0                      # placeholder row
         if sub_resolution > 1:
             total += BinRefinement.planned_bytes(C * B, sub_resolution, refine_capacity)
@@ -462,6 +477,7 @@ class RadianceRecord:
         arrays = [self.acc_sum, self.acc_count, self.pass_targets, self.q, self.policy, self.cell_alias]
         if self.needs_pairs:
             arrays += [self.visited, self.pair_memo, self.value, self.hemi_alias, self.row_bins, self.row_slots,
+                       self.reach_bins if self.needs_in_bin else None,
                        self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_scale, self.in_bin_misses]
         refined = self.refinement.memory_bytes() if self.refinement else 0
         return refined + sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays if a is not None)
