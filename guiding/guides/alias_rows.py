@@ -24,8 +24,8 @@ import mitsuba as mi
 SLOT_FIELDS = 4
 #: Bytes per bin of a table.
 SLOT_BYTES = 4 * SLOT_FIELDS
-#: Bytes per bin of the temporaries of a table's construction (probabilities, lists, thresholds and aliases, their
-#: float64 sums).
+#: Bytes per bin of the temporaries of a table's construction (the weights and their float64 copy for the row sums,
+#: the small-bin flags and lists, thresholds and aliases, the float64 sums the sweep writes, densities).
 BUILD_BYTES = 48
 #: Thresholds below this are set to 0: such a bin (probability < 2⁻⁶⁴/size) is never drawn, so that no drawn bin
 #: has a density that underflows float32.
@@ -34,8 +34,8 @@ NEGLIGIBLE = 2.0 ** -64
 
 def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Float:
     """The slots of consecutive rows of ``size`` weights (finite, non-negative, a positive sum per row: the callers'
-    policies are at least ε/B and their weights sanitised; a row of zeros would give NaN thresholds); a bin's density
-    field is its probability times ``scale`` (per bin, or one value)."""
+    policies are at least ε/B and their weights sanitised; a row of zeros, whose every bin is its maximum, comes out
+    uniform); a bin's density field is its probability times ``scale`` (per bin, or one value)."""
     rows = dr.width(weight) // size
     flat = dr.arange(mi.UInt32, rows * size)
     row_of, k = flat // size, flat % size
@@ -49,7 +49,7 @@ def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Floa
     threshold = dr.select(small == 0, mi.Float(1), 0)
     alias = dr.select(small == 0, k, 0)    # its own variable: the sweep writes in place (a scatter into k copies k)
     received = dr.zeros(mi.Float64, rows * size)
-    dr.make_opaque(received)       # zeroed once here (scattered into by the sweep's loop as a literal, it was twice)
+    dr.make_opaque(received)       # zeroed here, once (a literal scattered into in the sweep's loop is zeroed twice)
     dr.eval(threshold, alias, listed)
     _sweep(w, row_sum, threshold, alias, received, listed, small_count, size)
 

@@ -316,7 +316,7 @@ class RadianceRecord:
         With ``max_cos``, the bins above the horizon of some normal of the normal bin (``reach_bins``: M's maximum
         runs over them, and hemi_inv's rows hold them all); with ``cos_integral``, those above the horizon of its
         centre, the only ones the rejection target can draw (the rows of the ``bins`` proposal: 286 of 368 at D = 16,
-        a quarter less to rebuild after every pass)."""
+        a fifth less to rebuild after every pass)."""
         import numpy as np
 
         B, NB = self.bins.count, self.normal_bins.count
@@ -395,7 +395,7 @@ class RadianceRecord:
                           "clamped_entries": int(dr.count(~bad & (visits > 0) & (mean > Q_LIMIT))[0])}
 
     def _update_memo(self) -> int:
-        B, NB = self.bins.count, self.normal_bins.count
+        B = self.bins.count
         pairs = dr.compress(self.visited != 0)
         count = dr.width(pairs)
         if count == 0:
@@ -459,8 +459,8 @@ class RadianceRecord:
                       refine_capacity: int = 0) -> int:
         """The bytes of the tables whose size is fixed when a record is built with these arguments, computed
         without allocating anything (so that an oversized table can be refused before it is built). The alias rows
-        of the visited pairs (``hemi_alias``, at most 2·D² slots per pair: the bins its normal bin reaches) come on
-        top: they grow with the visits, and :meth:`_update_memo` checks them against ``row_memory_limit``."""
+        of the visited pairs (``hemi_alias``, at most 2·D² slots per pair: the bins a row holds, ``_row_layout``)
+        come on top: they grow with the visits, and :meth:`_update_memo` checks them against ``row_memory_limit``."""
         C, B, NB = spatial_resolution ** 3, 2 * directional_resolution ** 2, 6 * normal_resolution ** 2
         total = C * B * (8 + 8 + 8 + 8 + 4 + 4)                # totals, pass sums, Q, policy
         if needs_cell_alias:

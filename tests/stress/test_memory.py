@@ -30,7 +30,8 @@ def test_planned_table_size_is_what_built_tables_report(rule, figures):
     """The size planned before allocation (`RadianceRecord.planned_bytes`, the fixed tables) bounds what a built
     record reports, and once every (cell, normal bin) pair has been visited the record holds one alias row of
     `row_length` slots per pair in place of its placeholder row, for every sampler and proposal (the per-pair alias
-    tables hold rows for visited pairs only). D = 4: a row holds 30 of the 32 bins."""
+    tables hold rows for visited pairs only). D = 4: a row holds 30 of the 32 bins (hemi_inv, the uniform proposal)
+    or 24 (the bins proposal: those above the horizon of the normal bin's centre)."""
     for sampler in SAMPLERS:
         for proposal in PROPOSALS:
             record = GridGuide(spatial_resolution=2, directional_resolution=4, rule=rule, sampler=sampler,
