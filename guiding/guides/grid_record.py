@@ -352,10 +352,22 @@ class RadianceRecord:
         return np.array(self.acc_sum) + pending[:, 0], np.array(self.acc_count) + pending[:, 1]
 
     def _fold_pass(self) -> None:
-        """Add the pass's sums and counts to the totals, and clear them for the next pass."""
+        """Add the pass's sums and counts to the totals (and clear them for the next pass), and set Q, their mean
+        clamped to Q_LIMIT, in one kernel. Drops the history of (cell, bin) entries whose totals hold NaN, ±Inf or a
+        negative value (a bad target, or memory corruption): never cleared, they would keep Q, and through the
+        normaliser the whole cell's policy, NaN forever. ``sanitised`` counts, for this update, the entries dropped
+        and the entries whose Q was clamped."""
         added, visits = entry_sums(self.pass_targets, dr.arange(mi.UInt32, dr.width(self.acc_sum)))
-        self.acc_sum, self.acc_count = self.acc_sum + added, self.acc_count + visits
-        dr.eval(self.acc_sum, self.acc_count)
+        total, count = self.acc_sum + added, self.acc_count + visits
+        mean = total / dr.maximum(count, 1)
+        bad = ~(dr.isfinite(mean) & dr.isfinite(count) & (mean >= 0) & (count >= 0))
+        clamped = ~bad & (count > 0) & (mean > Q_LIMIT)
+        self.acc_sum, self.acc_count = dr.select(bad, 0, total), dr.select(bad, 0, count)
+        self.q = mi.Float(dr.select(bad | (count == 0), 0, dr.minimum(mean, Q_LIMIT)))
+        dr.eval(self.acc_sum, self.acc_count, self.q, bad, clamped)
+        dropped_count, clamped_count = dr.count(bad), dr.count(clamped)
+        dr.eval(dropped_count, clamped_count)        # both read back after one wait
+        self.sanitised = {"dropped_entries": int(dropped_count[0]), "clamped_entries": int(clamped_count[0])}
         self.pass_targets = pass_sums(dr.width(self.acc_sum))
 
     # -------------------------------------------------------------------- update
@@ -364,35 +376,17 @@ class RadianceRecord:
         memoised pairs."""
         B = self.bins.count
         self._fold_pass()
-        self._sanitise()
-        visits = self.acc_count
-        mean = self.acc_sum / dr.maximum(visits, 1)
-        self.q = mi.Float(dr.select(visits > 0, dr.minimum(mean, Q_LIMIT), 0))
         epsilon = dr.opaque(mi.Float, exploration(spp_done, self.min_exploration))
         shifted = self.q + Q_OFFSET
         cell_of = dr.arange(mi.UInt32, self.cells * B) // B
         totals = dr.gather(mi.Float, dr.block_reduce(dr.ReduceOp.Add, shifted, B), cell_of)
         self.policy = (1 - epsilon) * shifted / totals + epsilon / B
-        dr.eval(self.q, self.policy)
+        dr.eval(self.policy)
         if self.needs_cell_alias:
             self.cell_alias = alias_rows.build(self.policy, B, 1 / self.bins.solid_angle)
         if self.refinement:
-            self.refined_stats = self.refinement.update(self.policy, self.q, visits)
+            self.refined_stats = self.refinement.update(self.policy, self.q, self.acc_count)
         return self._update_memo() if self.needs_pairs else 0
-
-    def _sanitise(self) -> None:
-        """Drop the history of (cell, bin) entries whose accumulators hold NaN, ±Inf or a negative value (a bad
-        target, or memory corruption): never cleared, they would keep Q, and through the normaliser the whole
-        cell's policy, NaN forever. ``sanitised`` counts, for this update, the entries dropped and the entries whose
-        Q was clamped to Q_LIMIT."""
-        visits = self.acc_count
-        mean = self.acc_sum / dr.maximum(visits, 1)
-        bad = ~(dr.isfinite(mean) & dr.isfinite(visits) & (mean >= 0) & (visits >= 0))
-        self.acc_sum = dr.select(bad, 0, self.acc_sum)
-        self.acc_count = dr.select(bad, 0, visits)
-        dr.eval(self.acc_sum, self.acc_count)
-        self.sanitised = {"dropped_entries": int(dr.count(bad)[0]),
-                          "clamped_entries": int(dr.count(~bad & (visits > 0) & (mean > Q_LIMIT))[0])}
 
     def _update_memo(self) -> int:
         B = self.bins.count
