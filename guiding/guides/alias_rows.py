@@ -42,7 +42,8 @@ def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Floa
     w = mi.Float(weight)
     dr.eval(w)     # the callers' weights are expressions of gathers: computed once, not in every reduction below
     row_sum = dr.block_reduce(dr.ReduceOp.Add, mi.Float64(w), size)
-    large = (_probability(w, row_sum, row_of, size) >= 1) | (w == dr.gather(mi.Float, block_max(w, size), row_of))
+    large = ((_probability(w, dr.gather(mi.Float64, row_sum, row_of), size) >= 1)
+             | (w == dr.gather(mi.Float, block_max(w, size), row_of)))
     small = mi.UInt32(~large)
     dr.eval(small)
     listed, small_count = _lists(small, row_of, k, size)
@@ -71,9 +72,10 @@ def block_max(values: mi.Float, size: int) -> mi.Float:
     return dr.reinterpret_array(mi.Float, dr.block_reduce(dr.ReduceOp.Max, bits, size))
 
 
-def _probability(w: mi.Float, row_sum: mi.Float64, row: mi.UInt32, size: int) -> mi.Float64:
-    """Weights ``w`` of rows ``row`` (sums ``row_sum``) as probabilities of mean 1 per row, in float64."""
-    return mi.Float64(w) * size / dr.gather(mi.Float64, row_sum, row)
+def _probability(w: mi.Float, row_sum: mi.Float64, size: int) -> mi.Float64:
+    """Weights ``w`` of rows summing to ``row_sum`` as probabilities of mean 1 per row, in float64: one expression
+    for the large/small split and for the sweep, so that both see the very same values."""
+    return mi.Float64(w) * size / row_sum
 
 
 def _lists(small: mi.UInt32, row_of: mi.UInt32, k: mi.UInt32, size: int) -> tuple[mi.UInt32, mi.UInt32]:
@@ -110,8 +112,8 @@ def _sweep(w, row_sum, threshold, alias, received_by, listed, small_count, size:
     large_count = size - small_count
     taken, converted = mi.UInt32(0), mi.UInt32(0)        # small bins handed out; large bins turned small
     current = dr.gather(mi.UInt32, listed, first + small_count)
-    # The current large bin's probability not yet in a slot (probabilities as _probability computes them).
-    excess = mi.Float64(dr.gather(mi.Float, w, first + current)) * size / row_sum
+    # The current large bin's probability not yet in a slot.
+    excess = _probability(dr.gather(mi.Float, w, first + current), row_sum, size)
     received = mi.Float64(0)                             # what the current large bin's aliasing slots add to it
     going = mi.Bool(True)
     while going:
@@ -119,7 +121,7 @@ def _sweep(w, row_sum, threshold, alias, received_by, listed, small_count, size:
         give = ~turn & (taken < small_count)
         going = turn | give
         following = dr.gather(mi.UInt32, listed, first + dr.select(turn, small_count + converted + 1, taken), going)
-        mass = mi.Float64(dr.gather(mi.Float, w, first + following, going)) * size / row_sum
+        mass = _probability(dr.gather(mi.Float, w, first + following, going), row_sum, size)
         # turn: the current bin's slot keeps its excess and is aliased to the following large bin; give: the
         # following small bin's slot keeps its probability and is aliased to the current bin.
         slot = first + dr.select(turn, current, following)

@@ -351,7 +351,7 @@ class RadianceRecord:
         pending = np.array(self.pass_targets).reshape(-1, 2)
         return np.array(self.acc_sum) + pending[:, 0], np.array(self.acc_count) + pending[:, 1]
 
-    def _fold_pass(self) -> None:
+    def _fold_pass_into_q(self) -> None:
         """Add the pass's sums and counts to the totals (and clear them for the next pass), and set Q, their mean
         clamped to Q_LIMIT, in one kernel. Drops the history of (cell, bin) entries whose totals hold NaN, ±Inf or a
         negative value (a bad target, or memory corruption): never cleared, they would keep Q, and through the
@@ -375,7 +375,7 @@ class RadianceRecord:
         """Fold the pass's targets in, rebuild Q, the policy and what the samplers need; returns the number of
         memoised pairs."""
         B = self.bins.count
-        self._fold_pass()
+        self._fold_pass_into_q()
         epsilon = dr.opaque(mi.Float, exploration(spp_done, self.min_exploration))
         shifted = self.q + Q_OFFSET
         cell_of = dr.arange(mi.UInt32, self.cells * B) // B
@@ -471,7 +471,7 @@ class RadianceRecord:
         arrays = [self.acc_sum, self.acc_count, self.pass_targets, self.q, self.policy, self.cell_alias]
         if self.needs_pairs:
             arrays += [self.visited, self.pair_memo, self.value, self.hemi_alias, self.row_bins, self.row_slots,
-                       self.reach_bins if self.needs_in_bin else None,
+                       None if self.reach_bins is self.row_bins else self.reach_bins,
                        self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_scale, self.in_bin_misses]
         refined = self.refinement.memory_bytes() if self.refinement else 0
         return refined + sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays if a is not None)

@@ -2,7 +2,7 @@
 
 A NaN, ±Inf or negative accumulator entry made a whole cell's policy NaN for the rest of the run (the grid's
 accumulators are never cleared) and an SD-tree's probabilities NaN; an infinite vertex count would have split the
-S-tree to depth 60. `RadianceRecord.update` (via `_sanitise`) now drops such entries and clamps Q to 1e30
+S-tree to depth 60. `RadianceRecord.update` (via `_fold_pass_into_q`) now drops such entries and clamps Q to 1e30
 (`Q_LIMIT`), the SD-tree's `_pull` zeroes bad energies and counts; both report `dropped_entries` (and the grid
 `clamped_entries`) in each pass's statistics.
 """
@@ -91,3 +91,27 @@ def test_sdtree_table_updates(method, figures):
             assert not np.array(hostile._sampling.has_energy).any(), f"{kind}: a tree without energy is guided"
         checked += 1
     figures.update(kinds=list(HOSTILE_ENTRIES), updates_checked=checked)
+
+
+def test_bound_covers_every_bin_the_normal_bin_reaches():
+    """M, the memo's bound, is the largest P·max_cos over every bin some normal of the normal bin reaches, also where
+    the rejection samplers' alias rows hold fewer bins (those above the horizon of the normal bin's centre): a policy
+    peaked on a bin only the normal bin's edge reaches sets M."""
+    import drjit as dr
+    import mitsuba as mi
+
+    record = RadianceRecord(1, 4, 5, needs_memo=True, needs_hemi_alias=True, needs_in_bin=True)
+    B, NB = record.bins.count, record.normal_bins.count
+    max_cos = np.array(record.max_cos).reshape(NB, B)
+    cos_integral = np.array(record.cos_integral).reshape(NB, B)
+    edge_only = (max_cos > 0) & (cos_integral == 0)
+    nb = int(np.flatnonzero(edge_only.any(axis=1))[0])
+    k = int(np.flatnonzero(edge_only[nb])[0])
+    policy = np.full(B, 1e-3, dtype=np.float32)
+    policy[k] = 1
+    record.policy = mi.Float(policy)
+    dr.scatter(record.visited, mi.UInt32(1), mi.UInt32(nb))     # the pair of the only cell and normal bin nb
+    record._update_memo()
+    reached = policy * max_cos[nb]
+    assert reached[k] > reached[cos_integral[nb] > 0].max()      # the edge bin, not one the rows hold, is the largest
+    assert record.memo_columns()["bound"][nb] == pytest.approx(reached.max(), rel=1e-6)
