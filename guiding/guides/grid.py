@@ -46,6 +46,7 @@ import mitsuba as mi
 
 from .base import Guide, UpdateResult, rgb_mean
 from . import alias_rows
+from .lambertian import LambertianBsdfs
 from .grid_record import IN_BIN_PROPOSALS, PairMemo, RadianceRecord, table_needs
 from .parameters import (PROFILE_BSDF_PATHS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
                          with_overrides)
@@ -141,6 +142,7 @@ class GridGuide(Guide):
         self.rebuild_growth = p.rebuild_growth
         self._rebuilt_at = 0           # spp done at the record's last rebuild
         self._table_stats = {}         # memo pairs and refinement figures of the last rebuild
+        self._bsdfs = LambertianBsdfs()   # the scene's Lambertian BSDFs (none known until prepare)
         self.record_table = RadianceRecord(
             p.spatial_resolution, p.directional_resolution, p.normal_resolution,
             **table_needs(p.rule, p.sampler, p.proposal), min_exploration=p.min_exploration,
@@ -152,6 +154,7 @@ class GridGuide(Guide):
     # ================================================================ host side
     def prepare(self, scene: mi.Scene) -> None:
         self.record_table.set_bounds(scene.bbox())
+        self._bsdfs = LambertianBsdfs(scene)
         self._rebuilt_at = 0      # a render that continues a trained guide counts its spp from 0: rebuild after a pass
 
     def update(self, spp_done: int) -> UpdateResult:
@@ -265,7 +268,8 @@ class GridGuide(Guide):
 
     def _guided_sample(self, sampler, si, bsdf, bsdf_ctx, vertex) -> tuple[mi.BSDFSample3f, mi.Spectrum, mi.UInt32]:
         """The one-sample mixture of BSDF sampling and the guide at the guided lanes: one BSDF call gives its sample,
-        and its value and density at the guide's direction. Returns the sample, its weight and its record index."""
+        and its value and density at the guide's direction (computed inline where the BSDF is Lambertian,
+        :mod:`~guiding.guides.lambertian`). Returns the sample, its weight and its record index."""
         guided = vertex.guided
         table = self.record_table
         if self._stage == 0:      # profile stage "classify": the mask is computed (and used), the BSDF samples
@@ -278,8 +282,8 @@ class GridGuide(Guide):
             searching = guided & (sampler.next_1d(guided) >= vertex.bsdf_share)
             guide_world, guide_bin, guide_density, use_guide = self._sample_rejection(sampler, vertex, searching)
         guide_wo = si.to_local(guide_world)
-        guide_value, guide_bsdf_pdf, bs, bsdf_weight = bsdf.eval_pdf_sample(
-            bsdf_ctx, si, guide_wo, sampler.next_1d(guided), sampler.next_2d(guided), guided)
+        guide_value, guide_bsdf_pdf, bs, bsdf_weight = self._bsdfs.eval_pdf_sample(
+            bsdf, bsdf_ctx, si, guide_wo, sampler.next_1d(guided), sampler.next_2d(guided), guided)
         if self._stage == 1:      # profile stage "sample": guided directions, the BSDF's weights
             bs.wo = dr.select(use_guide, guide_wo, bs.wo)
             return bs, bsdf_weight, self._index_taken(si, si.to_world(bs.wo))

@@ -1,0 +1,97 @@
+"""Lambertian BSDFs computed inline (`guiding.guides.lambertian`): the same values, densities, samples and weights
+as Mitsuba's own `eval_pdf_sample`, on both sides of one- and two-sided diffuse surfaces, and Mitsuba's call kept
+for every other BSDF, even those whose flags say diffuse."""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from guiding.guides.lambertian import BOTH_SIDES, FRONT_SIDE, NOT_LAMBERTIAN, LambertianBsdfs, lambertian_sides
+
+TEXTURE = {"type": "checkerboard", "color0": {"type": "rgb", "value": [0.8, 0.1, 0.2]},
+           "color1": {"type": "rgb", "value": [0.1, 0.6, 0.3]}}
+#: One square per BSDF, side by side along x, facing +z; and the sides the table must give each.
+BSDFS = {
+    "diffuse": ({"type": "diffuse", "reflectance": TEXTURE}, FRONT_SIDE),
+    "twosided": ({"type": "twosided", "material": {"type": "diffuse", "reflectance": TEXTURE}}, BOTH_SIDES),
+    "twosided_two_albedos": ({"type": "twosided", "front": {"type": "diffuse", "reflectance": TEXTURE},
+                              "back": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.3, 0.3, 0.9]}}},
+                             BOTH_SIDES),
+    "blend": ({"type": "blendbsdf", "weight": 0.3, "bsdf_0": {"type": "diffuse"},
+               "bsdf_1": {"type": "diffuse", "reflectance": TEXTURE}}, NOT_LAMBERTIAN),
+    "twosided_plastic_back": ({"type": "twosided", "front": {"type": "diffuse"},
+                               "back": {"type": "roughplastic"}}, NOT_LAMBERTIAN),
+    "bumped": ({"type": "normalmap", "normalmap": {"type": "bitmap", "raw": True,
+                                                   "data": mi.TensorXf(np.full((2, 2, 3), [0.6, 0.5, 0.9], np.float32))},
+                "bsdf": {"type": "diffuse"}}, NOT_LAMBERTIAN),
+}
+
+
+@pytest.fixture(scope="module")
+def squares():
+    shapes = {name: {"type": "rectangle", "bsdf": bsdf,
+                     "to_world": mi.ScalarTransform4f().translate([3.0 * i, 0, 0]).scale(0.9)}
+              for i, (name, (bsdf, _)) in enumerate(BSDFS.items())}
+    return mi.load_dict({"type": "scene", **shapes})
+
+
+def _hits(scene, lanes: int, seed: int):
+    """Surface interactions on every square, reached from above and below at random angles and positions."""
+    rng = np.random.default_rng(seed)
+    square = rng.integers(0, len(BSDFS), lanes)
+    target = np.stack([3.0 * square + rng.uniform(-0.8, 0.8, lanes), rng.uniform(-0.8, 0.8, lanes),
+                       np.zeros(lanes)], 1)
+    incoming = rng.normal(size=(lanes, 3))
+    incoming /= np.linalg.norm(incoming, axis=1, keepdims=True)
+    origin = target + 2 * incoming
+    ray = mi.Ray3f(mi.Point3f(*origin.T.astype(np.float32)), mi.Vector3f(*(-incoming).T.astype(np.float32)))
+    si = scene.ray_intersect(ray)
+    assert dr.all(si.is_valid())
+    return si
+
+
+def test_table_knows_which_bsdfs_are_lambertian(squares):
+    """diffuse: front side only; twosided of diffuse (one or two albedos): both; a blend of two diffuse BSDFs, a
+    twosided with a plastic back and a normal-mapped diffuse: Mitsuba's call (only the two plugins named are
+    known)."""
+    table = LambertianBsdfs(squares)
+    for shape in squares.shapes():
+        expected = BSDFS[shape.id()][1]
+        assert lambertian_sides(shape.bsdf()) == expected, shape.id()
+        bsdf = mi.BSDFPtr(shape.bsdf())
+        assert table.sides(bsdf, mi.Bool(True))[0] == expected, shape.id()
+    assert LambertianBsdfs().sides(mi.BSDFPtr(squares.shapes()[0].bsdf()), mi.Bool(True))[0] == NOT_LAMBERTIAN
+
+
+def test_inline_values_match_mitsuba(squares):
+    """At 40 000 random hits (both sides of every square) with random directions ``wo`` on the whole sphere and
+    random samples: value and density at ``wo``, sampled direction, its density and its weight as Mitsuba's
+    ``eval_pdf_sample`` gives them (float32 rounding apart), and the same lanes zero."""
+    lanes = 40_000
+    si = _hits(squares, lanes, seed=3)
+    bsdf = si.bsdf()
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(7, lanes)
+    wo = mi.warp.square_to_uniform_sphere(sampler.next_2d())
+    sample1, sample2 = sampler.next_1d(), sampler.next_2d()
+    ctx = mi.BSDFContext()
+    active = mi.Bool(True)
+    ours = LambertianBsdfs(squares).eval_pdf_sample(bsdf, ctx, si, wo, sample1, sample2, active)
+    theirs = bsdf.eval_pdf_sample(ctx, si, wo, sample1, sample2, active)
+
+    def arrays(result):
+        value, pdf, bs, weight = result
+        return {"value": np.array(value), "pdf": np.array(pdf), "weight": np.array(weight),
+                "wo": np.array(bs.wo), "sample_pdf": np.array(bs.pdf)}
+
+    a, b = arrays(ours), arrays(theirs)
+    carries = b["weight"].max(axis=0) > 0      # lanes whose sample Mitsuba gives a weight: its direction matters
+    for key in ("value", "pdf", "weight"):
+        np.testing.assert_allclose(a[key], b[key], rtol=2e-6, atol=1e-7, err_msg=key)
+        assert np.array_equal(a[key] == 0, b[key] == 0), key
+    np.testing.assert_allclose(a["wo"][:, carries], b["wo"][:, carries], atol=1e-6)
+    np.testing.assert_allclose(a["sample_pdf"][carries], b["sample_pdf"][carries], rtol=2e-6)
+    # Every kind of lane was met: lit from the front, mirrored from the back, black from behind, and not inline.
+    front = np.array(mi.Frame3f.cos_theta(si.wi)) > 0
+    assert front.any() and (~front).any() and (b["value"].max(axis=0) > 0).mean() > 0.2
