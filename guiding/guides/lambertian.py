@@ -1,16 +1,20 @@
-"""Lambertian BSDFs evaluated and sampled in the path loop itself, not through Mitsuba's BSDF call.
+"""Lambertian BSDFs evaluated and sampled in the path loop itself, not through Mitsuba's BSDF calls.
 
 A guided vertex needs the BSDF's value and density at the guide's direction and a BSDF sample (the two strategies
 of the one-sample mixture). Mitsuba's ``BSDF.eval_pdf_sample`` does both in one call, but for most BSDFs (``diffuse``
 and ``twosided`` among them) as two calls in one, each evaluating the reflectance texture and, for ``twosided``,
-choosing the side. Where the BSDF is Mitsuba's ``diffuse``, one-sided or wrapped two-sided in ``twosided``, all
-of that is ``ρ·cos/π`` and a cosine-weighted direction: :class:`LambertianBsdfs` computes them inline from one
-call of ``eval_diffuse_reflectance`` (the texture read once), the same values as Mitsuba's own (same warps, same
-random numbers, the same lanes zero). Other BSDFs, and ``diffuse`` under any other wrapper (a bump or normal map
-changes the frame, ``roughdiffuse`` is not Lambertian), keep Mitsuba's call.
+choosing the side. Where the BSDF is Mitsuba's ``diffuse``, one-sided or
+wrapped two-sided in ``twosided``, all of that is ``ρ·cos/π`` and a cosine-weighted direction:
+:class:`LambertianBsdfs` computes them inline from one call of ``eval_diffuse_reflectance`` (the texture read
+once), the same values as Mitsuba's own (same warps, same random numbers, the same lanes zero), where every BSDF a
+guide guides in the scene is such a BSDF. Any other BSDF, ``diffuse`` under another wrapper included (a bump or
+normal map changes the frame, a blend may mix in other lobes), keeps Mitsuba's calls for the whole scene.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -50,24 +54,42 @@ def _children(bsdf: mi.BSDF) -> list:
     return callback.found
 
 
+@dataclass
+class LambertianVertex:
+    """What the inline evaluation and sampling share at a vertex (:meth:`LambertianBsdfs.vertex`)."""
+
+    lit: mi.Bool          # a side the BSDF reflects on (front, or either for twosided)
+    flip: mi.Float        # −1 where twosided mirrors a back-side query to its front, else 1
+    albedo: mi.Spectrum   # ρ, from the BSDF's one call
+
+
 class LambertianBsdfs:
-    """Which of a scene's BSDFs are Lambertian (:func:`lambertian_sides`), by their Dr.Jit registry id, and their
-    value, density and samples computed inline.
+    """Whether every BSDF a guide guides in a scene is Lambertian (:func:`lambertian_sides`), and then their value,
+    density and samples computed inline; else Mitsuba's calls, unchanged. All or nothing per scene: with a BSDF of
+    another kind, its lanes would need Mitsuba's call beside the inline one, and a call costs the passing of its
+    arguments even in packets with no lane to run (measured: a mixed kernel was slower on cornell-box than
+    Mitsuba's call alone).
 
     Parameters:
-      scene: the scene whose shapes' BSDFs are looked at (None: no BSDF is known, every lane takes Mitsuba's call).
+      scene: the scene whose shapes' BSDFs are looked at (None: nothing inline).
+      guided: which of them the guide asks about (by default all).
     """
 
-    def __init__(self, scene: mi.Scene | None = None):
+    def __init__(self, scene: mi.Scene | None = None, guided: Callable[[mi.BSDF], bool] = lambda bsdf: True):
         sides = {}
+        asked = []
         for shape in scene.shapes() if scene is not None else []:
             bsdf = shape.bsdf()
             if bsdf is not None:
-                sides[int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])] = lambertian_sides(bsdf)
+                registry_id = int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
+                sides[registry_id] = lambertian_sides(bsdf)
+                if guided(bsdf):
+                    asked.append(sides[registry_id])
         table = [NOT_LAMBERTIAN] * (max(sides, default=0) + 1)
         for registry_id, side in sides.items():
             table[registry_id] = side
-        self.any = any(side != NOT_LAMBERTIAN for side in table)
+        #: Whether the asked BSDFs are computed inline (there is one, and every one is Lambertian).
+        self.inline = bool(asked) and NOT_LAMBERTIAN not in asked
         self._sides = mi.UInt32(table)
 
     def sides(self, bsdf: mi.BSDFPtr, active: mi.Bool) -> mi.UInt32:
@@ -77,36 +99,50 @@ class LambertianBsdfs:
         known = active & (registry_id < dr.width(self._sides))
         return dr.gather(mi.UInt32, self._sides, registry_id, known)
 
+    def vertex(self, bsdf: mi.BSDFPtr, si: mi.SurfaceInteraction3f, active: mi.Bool) -> LambertianVertex | None:
+        """The BSDF's side and albedo at the ``active`` lanes (BSDFs the table was asked about); None where the
+        scene's BSDFs are not computed inline. Mitsuba's twosided turns a back-side query into a front-side one of
+        its back BSDF (wi and wo mirrored); diffuse alone is black from behind."""
+        if not self.inline:
+            return None
+        cos_i = mi.Frame3f.cos_theta(si.wi)
+        mirrored = (cos_i < 0) & (self.sides(bsdf, active) == BOTH_SIDES)
+        lit = active & ((cos_i > 0) | mirrored)
+        return LambertianVertex(lit=lit, flip=dr.select(mirrored, -1.0, 1.0),
+                                albedo=bsdf.eval_diffuse_reflectance(si, lit))
+
+    def eval_pdf(self, vertex: LambertianVertex | None, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext,
+                 si: mi.SurfaceInteraction3f, wo: mi.Vector3f, active: mi.Bool) -> tuple[mi.Spectrum, mi.Float]:
+        """``bsdf.eval_pdf``: the value and density at local direction ``wo`` (inline, ignoring ``bsdf_ctx``: the
+        path loop's is the default context, every lobe enabled)."""
+        if vertex is None:
+            return bsdf.eval_pdf(bsdf_ctx, si, wo, active)
+        cos_o = vertex.flip * mi.Frame3f.cos_theta(wo)
+        pdf = dr.select(active & vertex.lit & (cos_o > 0), cos_o * dr.inv_pi, 0)
+        return vertex.albedo * pdf, pdf
+
+    def sample(self, vertex: LambertianVertex | None, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext,
+               si: mi.SurfaceInteraction3f, sample1: mi.Float, sample2: mi.Point2f,
+               active: mi.Bool) -> tuple[mi.BSDFSample3f, mi.Spectrum]:
+        """``bsdf.sample``: a cosine-weighted direction and its weight (inline, the same warp and the same random
+        numbers as Mitsuba's diffuse, ``sample1`` unused: one lobe)."""
+        if vertex is None:
+            return bsdf.sample(bsdf_ctx, si, sample1, sample2, active)
+        local = mi.warp.square_to_cosine_hemisphere(sample2)
+        bs = dr.zeros(mi.BSDFSample3f)
+        bs.wo = mi.Vector3f(local.x, local.y, vertex.flip * local.z)
+        bs.pdf = mi.warp.square_to_cosine_hemisphere_pdf(local)
+        bs.eta = 1.0
+        bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
+        return bs, dr.select(active & vertex.lit & (bs.pdf > 0), vertex.albedo, 0)
+
     def eval_pdf_sample(self, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, si: mi.SurfaceInteraction3f,
                         wo: mi.Vector3f, sample1: mi.Float, sample2: mi.Point2f, active: mi.Bool):
-        """What ``bsdf.eval_pdf_sample`` returns (value and density at local direction ``wo``, a BSDF sample and its
-        weight), inline at Lambertian lanes, through Mitsuba's call at the others. Inline lanes ignore ``bsdf_ctx``
-        (the path loop's is the default context, every lobe enabled)."""
-        if not self.any:
+        """``bsdf.eval_pdf_sample``: :meth:`eval_pdf` at ``wo`` and :meth:`sample`, sharing one albedo read (Mitsuba's
+        single call where the scene is not inline)."""
+        vertex = self.vertex(bsdf, si, active)
+        if vertex is None:
             return bsdf.eval_pdf_sample(bsdf_ctx, si, wo, sample1, sample2, active)
-        sides = self.sides(bsdf, active)
-        inline = active & (sides != NOT_LAMBERTIAN)
-        value, pdf, bs, weight = bsdf.eval_pdf_sample(bsdf_ctx, si, wo, sample1, sample2, active & ~inline)
-
-        # Mitsuba's twosided turns a back-side query into a front-side one of its back BSDF (wi and wo mirrored);
-        # diffuse alone is black from behind.
-        cos_i = mi.Frame3f.cos_theta(si.wi)
-        mirrored = (cos_i < 0) & (sides == BOTH_SIDES)
-        lit = inline & ((cos_i > 0) | mirrored)
-        flip = dr.select(mirrored, -1.0, 1.0)
-        albedo = bsdf.eval_diffuse_reflectance(si, lit)
-
-        cos_o = flip * mi.Frame3f.cos_theta(wo)
-        facing = lit & (cos_o > 0)
-        value = dr.select(inline, dr.select(facing, albedo * (cos_o * dr.inv_pi), 0), value)
-        pdf = dr.select(inline, dr.select(facing, cos_o * dr.inv_pi, 0), pdf)
-
-        local = mi.warp.square_to_cosine_hemisphere(sample2)
-        sample_pdf = mi.warp.square_to_cosine_hemisphere_pdf(local)
-        bs.wo = dr.select(inline, mi.Vector3f(local.x, local.y, flip * local.z), bs.wo)
-        bs.pdf = dr.select(inline, sample_pdf, bs.pdf)
-        bs.eta = dr.select(inline, 1.0, bs.eta)
-        bs.sampled_type = dr.select(inline, mi.UInt32(+mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
-        bs.sampled_component = dr.select(inline, mi.UInt32(0), bs.sampled_component)
-        weight = dr.select(inline, dr.select(lit & (sample_pdf > 0), albedo, 0), weight)
+        value, pdf = self.eval_pdf(vertex, bsdf, bsdf_ctx, si, wo, active)
+        bs, weight = self.sample(vertex, bsdf, bsdf_ctx, si, sample1, sample2, active)
         return value, pdf, bs, weight
