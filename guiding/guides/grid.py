@@ -46,7 +46,7 @@ import mitsuba as mi
 
 from .base import Guide, UpdateResult, rgb_mean
 from . import alias_rows
-from .lambertian import LambertianBsdfs
+from .lambertian import LambertianBsdfs, LambertianVertex
 from .grid_record import IN_BIN_PROPOSALS, PairMemo, RadianceRecord, table_needs
 from .parameters import (PROFILE_BSDF_PATHS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
                          with_overrides)
@@ -66,10 +66,12 @@ class GridVertex:
     """What the path loop hands from :meth:`GridGuide.locate` to ``sample`` and ``record`` at a vertex: the lanes
     the guide may guide (the BSDF flags), and the record index of the direction ``sample`` took (left None by an
     untrained guide and by refined bins, whose record index ``record`` computes: the sampler's bin of a refined
-    entry's unrefined neighbour does not say the sub-bin)."""
+    entry's unrefined neighbour does not say the sub-bin), and, for Expected SARSA's record, the albedo of
+    Lambertian BSDFs read at the ``guidable`` lanes (sampling computes their BSDF from it; None: not read here)."""
 
     guidable: mi.Bool
     index: mi.UInt32 = None
+    lambertian: LambertianVertex = None
 
 
 @dataclass
@@ -223,7 +225,12 @@ class GridGuide(Guide):
     # ============================================================== device side
     # ---------------------------------------------------------------- sampling
     def locate(self, si, bsdf, active) -> GridVertex:
-        return GridVertex(self.guides(bsdf, active))
+        guidable_lanes = self.guides(bsdf, active)
+        lambertian = None
+        if self.trained and self.rule == "expected_sarsa":
+            # Read here, before sampling's branches, so that the record reads it too: one BSDF call, not two.
+            lambertian = self._bsdfs.vertex(bsdf, si, guidable_lanes)
+        return GridVertex(guidable_lanes, lambertian=lambertian)
 
     def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active, vertex=None):
         if not self.trained:
@@ -231,20 +238,21 @@ class GridGuide(Guide):
                 self._locate(si, bsdf, active)     # marks the pairs this pass visits: memoised for the next pass
             return bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
         guidable_lanes = self.guides(bsdf, active) if vertex is None else vertex.guidable
-        bs, weight, index = self._sample_vertex(sampler, si, bsdf, bsdf_ctx, active, guidable_lanes)
+        lambertian = None if vertex is None else vertex.lambertian
+        bs, weight, index = self._sample_vertex(sampler, si, bsdf, bsdf_ctx, active, guidable_lanes, lambertian)
         if vertex is not None and not self.record_table.refinement:
             vertex.index = index
         return bs, weight
 
     @dr.syntax
-    def _sample_vertex(self, sampler, si, bsdf, bsdf_ctx, active, guidable_lanes):
+    def _sample_vertex(self, sampler, si, bsdf, bsdf_ctx, active, guidable_lanes, lambertian=None):
         """The guide where the BSDF is one it guides, one BSDF sample elsewhere: a branch, not a select, so that
         packets of lanes with nothing to guide (delta and, unless ``guided_bsdfs`` is smooth, glossy BSDFs; emitters;
         escaped paths) pay only the BSDF flags test, not even the vertex's cell. Returns the sample, its weight and
         the record index of its direction (NO_RECORD where the BSDF is not guided: ``record`` looks it up there if a
-        recorded segment arrived)."""
+        recorded segment arrived). ``lambertian``: the albedo :meth:`locate` read, if it did."""
         if guidable_lanes:
-            bs, weight, index = self._sample_guidable(sampler, si, bsdf, bsdf_ctx, guidable_lanes)
+            bs, weight, index = self._sample_guidable(sampler, si, bsdf, bsdf_ctx, guidable_lanes, lambertian)
         else:
             others = active & ~guidable_lanes
             bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(others), sampler.next_2d(others), others)
@@ -252,11 +260,11 @@ class GridGuide(Guide):
         return bs, weight, index
 
     @dr.syntax
-    def _sample_guidable(self, sampler, si, bsdf, bsdf_ctx, active):
+    def _sample_guidable(self, sampler, si, bsdf, bsdf_ctx, active, lambertian=None):
         """The guide where the vertex's (cell, normal bin) pair has its memo, one BSDF sample elsewhere."""
         vertex = self._vertex(si, bsdf, active)
         if vertex.guided:
-            bs, weight, index = self._guided_sample(sampler, si, bsdf, bsdf_ctx, vertex)
+            bs, weight, index = self._guided_sample(sampler, si, bsdf, bsdf_ctx, vertex, lambertian)
         else:
             bs, weight, index = self._unguided_sample(sampler, si, bsdf, bsdf_ctx, active & ~vertex.guided)
         return bs, weight, index
@@ -266,7 +274,8 @@ class GridGuide(Guide):
         bs, weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
         return bs, weight, self._index_taken(si, si.to_world(bs.wo))
 
-    def _guided_sample(self, sampler, si, bsdf, bsdf_ctx, vertex) -> tuple[mi.BSDFSample3f, mi.Spectrum, mi.UInt32]:
+    def _guided_sample(self, sampler, si, bsdf, bsdf_ctx, vertex,
+                       lambertian=None) -> tuple[mi.BSDFSample3f, mi.Spectrum, mi.UInt32]:
         """The one-sample mixture of BSDF sampling and the guide at the guided lanes: one BSDF call gives its sample,
         and its value and density at the guide's direction (computed inline where the BSDF is Lambertian,
         :mod:`~guiding.guides.lambertian`). Returns the sample, its weight and its record index."""
@@ -283,7 +292,7 @@ class GridGuide(Guide):
             guide_world, guide_bin, guide_density, use_guide = self._sample_rejection(sampler, vertex, searching)
         guide_wo = si.to_local(guide_world)
         guide_value, guide_bsdf_pdf, bs, bsdf_weight = self._bsdfs.eval_pdf_sample(
-            bsdf, bsdf_ctx, si, guide_wo, sampler.next_1d(guided), sampler.next_2d(guided), guided)
+            bsdf, bsdf_ctx, si, guide_wo, sampler.next_1d(guided), sampler.next_2d(guided), guided, lambertian)
         if self._stage == 1:      # profile stage "sample": guided directions, the BSDF's weights
             bs.wo = dr.select(use_guide, guide_wo, bs.wo)
             return bs, bsdf_weight, self._index_taken(si, si.to_world(bs.wo))
@@ -496,7 +505,8 @@ class GridGuide(Guide):
         if self.rule == "mc":
             here = dr.select(leaves, self._record_index(si, bs, index, leaves), NO_RECORD)
             return self._mc_log.append(state, emitted, weight, continues, here, active)
-        state.previous = self._record_td(state.previous, si, emitted, bs, weight, continues, leaves, active, index)
+        state.previous = self._record_td(state.previous, si, emitted, bs, weight, continues, leaves, active, index,
+                                         vertex)
         return state
 
     def _record_index(self, si, bs, index, needed) -> mi.UInt32:
@@ -506,9 +516,11 @@ class GridGuide(Guide):
         return known_or_found(index, needed, lambda lanes: self.record_table.index(si.p, si.to_world(bs.wo)))
 
     @dr.syntax
-    def _record_td(self, previous, si, emitted, bs, weight, continues, leaves, active, index=None) -> mi.UInt32:
+    def _record_td(self, previous, si, emitted, bs, weight, continues, leaves, active, index=None,
+                   vertex=None) -> mi.UInt32:
         """SARSA / Expected SARSA: the target of the segment that led here (``previous``), and the entry of the
-        segment that leaves (returned). A branch: packets with neither (unguided surfaces) skip it."""
+        segment that leaves (returned); ``index`` and ``vertex`` (:class:`GridVertex`) as sampling handed them over.
+        A branch: packets with neither (unguided surfaces) skip it."""
         table = self.record_table
         pending = active & (previous != NO_RECORD)
         if pending | leaves:
@@ -520,12 +532,25 @@ class GridGuide(Guide):
                 bsdf = si.bsdf()
                 pair = table.pair(table.cell(si.p), si.sh_frame.n * _arrival_side(si))
                 known = pending & si.is_valid() & guidable(bsdf) & (table.memo(pair, pending).norm > 0)
-                albedo = rgb_mean(bsdf.eval_diffuse_reflectance(si, known))
+                albedo = self._albedo(si, bsdf, known, vertex)
                 onward = dr.select(known, albedo / dr.pi * dr.gather(mi.Float, table.value, pair, known), onward)
             target += dr.select(continues | known, onward, 0)
             table.accumulate(previous, target, pending)
             previous = dr.select(leaves, here, NO_RECORD)
         return previous
+
+    @dr.syntax
+    def _albedo(self, si, bsdf, known, vertex) -> mi.Float:
+        """The mean albedo ρ of the BSDF at the lanes ``known``: what :meth:`locate` read at the vertex's guidable
+        lanes, the BSDF's call at the others (a branch: most packets have none)."""
+        if dr.hint(vertex is None or vertex.lambertian is None, mode="scalar"):
+            albedo = rgb_mean(bsdf.eval_diffuse_reflectance(si, known))
+        else:
+            albedo = rgb_mean(vertex.lambertian.albedo)
+            missing = known & ~vertex.guidable
+            if missing:
+                albedo = dr.select(missing, rgb_mean(bsdf.eval_diffuse_reflectance(si, missing)), albedo)
+        return albedo
 
     def finish_paths(self, state) -> None:
         if self.rule == "mc":

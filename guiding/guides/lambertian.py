@@ -60,7 +60,7 @@ class LambertianVertex:
 
     lit: mi.Bool          # a side the BSDF reflects on (front, or either for twosided)
     flip: mi.Float        # −1 where twosided mirrors a back-side query to its front, else 1
-    albedo: mi.Spectrum   # ρ, from the BSDF's one call
+    albedo: mi.Spectrum   # ρ, from the BSDF's one call (what ``eval_diffuse_reflectance`` gives, either side)
 
 
 class LambertianBsdfs:
@@ -109,7 +109,7 @@ class LambertianBsdfs:
         mirrored = (cos_i < 0) & (self.sides(bsdf, active) == BOTH_SIDES)
         lit = active & ((cos_i > 0) | mirrored)
         return LambertianVertex(lit=lit, flip=dr.select(mirrored, -1.0, 1.0),
-                                albedo=bsdf.eval_diffuse_reflectance(si, lit))
+                                albedo=bsdf.eval_diffuse_reflectance(si, active))
 
     def eval_pdf(self, vertex: LambertianVertex | None, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext,
                  si: mi.SurfaceInteraction3f, wo: mi.Vector3f, active: mi.Bool) -> tuple[mi.Spectrum, mi.Float]:
@@ -137,10 +137,11 @@ class LambertianBsdfs:
         return bs, dr.select(active & vertex.lit & (bs.pdf > 0), vertex.albedo, 0)
 
     def eval_pdf_sample(self, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, si: mi.SurfaceInteraction3f,
-                        wo: mi.Vector3f, sample1: mi.Float, sample2: mi.Point2f, active: mi.Bool):
-        """``bsdf.eval_pdf_sample``: :meth:`eval_pdf` at ``wo`` and :meth:`sample`, sharing one albedo read (Mitsuba's
-        single call where the scene is not inline)."""
-        vertex = self.vertex(bsdf, si, active)
+                        wo: mi.Vector3f, sample1: mi.Float, sample2: mi.Point2f, active: mi.Bool,
+                        vertex: LambertianVertex | None = None):
+        """``bsdf.eval_pdf_sample``: :meth:`eval_pdf` at ``wo`` and :meth:`sample`, sharing one albedo read (``vertex``,
+        read here if None, at lanes including ``active``; Mitsuba's single call where the scene is not inline)."""
+        vertex = self.vertex(bsdf, si, active) if vertex is None else vertex
         if vertex is None:
             return bsdf.eval_pdf_sample(bsdf_ctx, si, wo, sample1, sample2, active)
         value, pdf = self.eval_pdf(vertex, bsdf, bsdf_ctx, si, wo, active)
