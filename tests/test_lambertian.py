@@ -76,6 +76,22 @@ def test_inline_only_where_every_guided_bsdf_is_lambertian(squares):
     assert not LambertianBsdfs().inline
 
 
+def test_scene_with_instances_keeps_mitsubas_calls():
+    """An instanced two-sided diffuse square beside a diffuse floor: the scene lists the instance, not the BSDF its
+    rays hit, so nothing is inline (inline, its back side came out black where Mitsuba's twosided reflects)."""
+    lambertian = {"type": "twosided", "material": {"type": "diffuse"}}
+    scene = mi.load_dict({
+        "type": "scene",
+        "floor": {"type": "rectangle", "bsdf": {"type": "diffuse"}},
+        "group": {"type": "shapegroup", "square": {"type": "rectangle", "bsdf": lambertian}},
+        "copy": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+                 "to_world": mi.ScalarTransform4f().translate([0, 0, 1])},
+    })
+    assert not LambertianBsdfs(scene, guided=lambda b: lambertian_sides(b) != NOT_LAMBERTIAN).inline
+    no_instance = mi.load_dict({"type": "scene", "floor": {"type": "rectangle", "bsdf": lambertian}})
+    assert LambertianBsdfs(no_instance).inline
+
+
 def test_inline_values_match_mitsuba(squares):
     """At the Lambertian squares' lanes of 40 000 random hits (both sides of every square) with random directions
     ``wo`` on the whole sphere and random samples: value and density at ``wo``, sampled direction, its density and

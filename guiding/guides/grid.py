@@ -250,7 +250,8 @@ class GridGuide(Guide):
         packets of lanes with nothing to guide (delta and, unless ``guided_bsdfs`` is smooth, glossy BSDFs; emitters;
         escaped paths) pay only the BSDF flags test, not even the vertex's cell. Returns the sample, its weight and
         the record index of its direction (NO_RECORD where the BSDF is not guided: ``record`` looks it up there if a
-        recorded segment arrived). ``lambertian``: the albedo :meth:`locate` read, if it did."""
+        recorded segment arrived). ``lambertian``: the Lambertian BSDF's side and albedo, if :meth:`locate` read
+        them."""
         if guidable_lanes:
             bs, weight, index = self._sample_guidable(sampler, si, bsdf, bsdf_ctx, guidable_lanes, lambertian)
         else:

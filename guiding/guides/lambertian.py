@@ -3,12 +3,12 @@
 A guided vertex needs the BSDF's value and density at the guide's direction and a BSDF sample (the two strategies
 of the one-sample mixture). Mitsuba's ``BSDF.eval_pdf_sample`` does both in one call, but for most BSDFs (``diffuse``
 and ``twosided`` among them) as two calls in one, each evaluating the reflectance texture and, for ``twosided``,
-choosing the side. Where the BSDF is Mitsuba's ``diffuse``, one-sided or
-wrapped two-sided in ``twosided``, all of that is ``ρ·cos/π`` and a cosine-weighted direction:
-:class:`LambertianBsdfs` computes them inline from one call of ``eval_diffuse_reflectance`` (the texture read
-once), the same values as Mitsuba's own (same warps, same random numbers, the same lanes zero), where every BSDF a
-guide guides in the scene is such a BSDF. Any other BSDF, ``diffuse`` under another wrapper included (a bump or
-normal map changes the frame, a blend may mix in other lobes), keeps Mitsuba's calls for the whole scene.
+choosing the side. Where the BSDF is Mitsuba's ``diffuse``, one-sided or wrapped two-sided in ``twosided``, all of
+that is ``ρ·cos/π`` and a cosine-weighted direction: :class:`LambertianBsdfs` computes them inline from one call of
+``eval_diffuse_reflectance`` (the texture read once), the same values as Mitsuba's own (same warps, same random
+numbers, the same lanes zero), where every BSDF a guide guides in the scene is such a BSDF. Any other BSDF,
+``diffuse`` under another wrapper included (a bump or normal map changes the frame, a blend may mix in other lobes),
+keeps Mitsuba's calls for the whole scene.
 """
 
 from __future__ import annotations
@@ -68,7 +68,8 @@ class LambertianBsdfs:
     density and samples computed inline; else Mitsuba's calls, unchanged. All or nothing per scene: with a BSDF of
     another kind, its lanes would need Mitsuba's call beside the inline one, and a call costs the passing of its
     arguments even in packets with no lane to run (measured: a mixed kernel was slower on cornell-box than
-    Mitsuba's call alone).
+    Mitsuba's call alone). A scene with instances keeps Mitsuba's calls: ``scene.shapes()`` lists an instance, not
+    the shapes (and BSDFs) of its shape group, which its rays hit.
 
     Parameters:
       scene: the scene whose shapes' BSDFs are looked at (None: nothing inline).
@@ -76,33 +77,34 @@ class LambertianBsdfs:
     """
 
     def __init__(self, scene: mi.Scene | None = None, guided: Callable[[mi.BSDF], bool] = lambda bsdf: True):
-        sides = {}
-        asked = []
-        for shape in scene.shapes() if scene is not None else []:
+        shapes = scene.shapes() if scene is not None else []
+        bsdfs = {}
+        for shape in shapes:
             bsdf = shape.bsdf()
             if bsdf is not None:
-                registry_id = int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
-                sides[registry_id] = lambertian_sides(bsdf)
-                if guided(bsdf):
-                    asked.append(sides[registry_id])
+                bsdfs[int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])] = bsdf
+        sides = {registry_id: lambertian_sides(bsdf) for registry_id, bsdf in bsdfs.items()}
+        asked = [sides[registry_id] for registry_id, bsdf in bsdfs.items() if guided(bsdf)]
         table = [NOT_LAMBERTIAN] * (max(sides, default=0) + 1)
         for registry_id, side in sides.items():
             table[registry_id] = side
-        #: Whether the asked BSDFs are computed inline (there is one, and every one is Lambertian).
-        self.inline = bool(asked) and NOT_LAMBERTIAN not in asked
+        instanced = any(shape.class_name() == "Instance" for shape in shapes)
+        #: Whether the asked BSDFs are computed inline (there is one, every one is Lambertian, and no instance).
+        self.inline = bool(asked) and NOT_LAMBERTIAN not in asked and not instanced
         self._sides = mi.UInt32(table)
 
     def sides(self, bsdf: mi.BSDFPtr, active: mi.Bool) -> mi.UInt32:
-        """:data:`NOT_LAMBERTIAN`, :data:`FRONT_SIDE` or :data:`BOTH_SIDES` per lane (a BSDF the table does not know
-        is not Lambertian)."""
+        """:data:`NOT_LAMBERTIAN`, :data:`FRONT_SIDE` or :data:`BOTH_SIDES` per lane (:data:`NOT_LAMBERTIAN` for a
+        BSDF of no shape of the scene)."""
         registry_id = dr.reinterpret_array(mi.UInt32, bsdf)
         known = active & (registry_id < dr.width(self._sides))
         return dr.gather(mi.UInt32, self._sides, registry_id, known)
 
     def vertex(self, bsdf: mi.BSDFPtr, si: mi.SurfaceInteraction3f, active: mi.Bool) -> LambertianVertex | None:
-        """The BSDF's side and albedo at the ``active`` lanes (BSDFs the table was asked about); None where the
-        scene's BSDFs are not computed inline. Mitsuba's twosided turns a back-side query into a front-side one of
-        its back BSDF (wi and wo mirrored); diffuse alone is black from behind."""
+        """The BSDF's side and albedo at the ``active`` lanes (whose BSDFs must be ones the table was asked about,
+        ``guided``: it treats every other as one-sided diffuse); None where the scene's BSDFs are not computed
+        inline. Mitsuba's twosided turns a back-side query into a front-side one of its back BSDF (wi and wo
+        mirrored); diffuse alone is black from behind."""
         if not self.inline:
             return None
         cos_i = mi.Frame3f.cos_theta(si.wi)
@@ -111,39 +113,27 @@ class LambertianBsdfs:
         return LambertianVertex(lit=lit, flip=dr.select(mirrored, -1.0, 1.0),
                                 albedo=bsdf.eval_diffuse_reflectance(si, active))
 
-    def eval_pdf(self, vertex: LambertianVertex | None, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext,
-                 si: mi.SurfaceInteraction3f, wo: mi.Vector3f, active: mi.Bool) -> tuple[mi.Spectrum, mi.Float]:
-        """``bsdf.eval_pdf``: the value and density at local direction ``wo`` (inline, ignoring ``bsdf_ctx``: the
-        path loop's is the default context, every lobe enabled)."""
+    def eval_pdf_sample(self, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, si: mi.SurfaceInteraction3f,
+                        wo: mi.Vector3f, sample1: mi.Float, sample2: mi.Point2f, active: mi.Bool,
+                        vertex: LambertianVertex | None = None):
+        """What ``bsdf.eval_pdf_sample`` returns: the value and density at local direction ``wo``, and a BSDF sample
+        with its weight. Inline from ``vertex`` (read here if None, else read at lanes including ``active``), with
+        the default context (every lobe enabled: the path loop's) and without ``sample1`` (one lobe); Mitsuba's
+        single call where the scene is not inline."""
+        vertex = self.vertex(bsdf, si, active) if vertex is None else vertex
         if vertex is None:
-            return bsdf.eval_pdf(bsdf_ctx, si, wo, active)
+            return bsdf.eval_pdf_sample(bsdf_ctx, si, wo, sample1, sample2, active)
         cos_o = vertex.flip * mi.Frame3f.cos_theta(wo)
-        pdf = dr.select(active & vertex.lit & (cos_o > 0), cos_o * dr.inv_pi, 0)
-        return vertex.albedo * pdf, pdf
+        facing = active & vertex.lit & (cos_o > 0)
+        # Mitsuba's order of operations, so that the values are its own to the bit.
+        value = dr.select(facing, vertex.albedo * dr.inv_pi * cos_o, 0)
+        pdf = dr.select(facing, dr.inv_pi * cos_o, 0)
 
-    def sample(self, vertex: LambertianVertex | None, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext,
-               si: mi.SurfaceInteraction3f, sample1: mi.Float, sample2: mi.Point2f,
-               active: mi.Bool) -> tuple[mi.BSDFSample3f, mi.Spectrum]:
-        """``bsdf.sample``: a cosine-weighted direction and its weight (inline, the same warp and the same random
-        numbers as Mitsuba's diffuse, ``sample1`` unused: one lobe)."""
-        if vertex is None:
-            return bsdf.sample(bsdf_ctx, si, sample1, sample2, active)
         local = mi.warp.square_to_cosine_hemisphere(sample2)
         bs = dr.zeros(mi.BSDFSample3f)
         bs.wo = mi.Vector3f(local.x, local.y, vertex.flip * local.z)
         bs.pdf = mi.warp.square_to_cosine_hemisphere_pdf(local)
         bs.eta = 1.0
         bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
-        return bs, dr.select(active & vertex.lit & (bs.pdf > 0), vertex.albedo, 0)
-
-    def eval_pdf_sample(self, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, si: mi.SurfaceInteraction3f,
-                        wo: mi.Vector3f, sample1: mi.Float, sample2: mi.Point2f, active: mi.Bool,
-                        vertex: LambertianVertex | None = None):
-        """``bsdf.eval_pdf_sample``: :meth:`eval_pdf` at ``wo`` and :meth:`sample`, sharing one albedo read (``vertex``,
-        read here if None, at lanes including ``active``; Mitsuba's single call where the scene is not inline)."""
-        vertex = self.vertex(bsdf, si, active) if vertex is None else vertex
-        if vertex is None:
-            return bsdf.eval_pdf_sample(bsdf_ctx, si, wo, sample1, sample2, active)
-        value, pdf = self.eval_pdf(vertex, bsdf, bsdf_ctx, si, wo, active)
-        bs, weight = self.sample(vertex, bsdf, bsdf_ctx, si, sample1, sample2, active)
+        weight = dr.select(active & vertex.lit & (bs.pdf > 0), vertex.albedo, 0)
         return value, pdf, bs, weight
