@@ -156,7 +156,7 @@ class GridGuide(Guide):
     # ================================================================ host side
     def prepare(self, scene: mi.Scene) -> None:
         self.record_table.set_bounds(scene.bbox())
-        self._bsdfs = LambertianBsdfs(scene, guided=lambda bsdf: bool(guidable(mi.BSDFPtr(bsdf), self.smooth)[0]))
+        self._bsdfs = LambertianBsdfs(scene, guided=lambda bsdf: bool(self.guides(mi.BSDFPtr(bsdf), True)[0]))
         self._rebuilt_at = 0      # a render that continues a trained guide counts its spp from 0: rebuild after a pass
 
     def update(self, spp_done: int) -> UpdateResult:
