@@ -321,9 +321,10 @@ TARGETS = [
 NO_GUIDABLE_BOUND = 1.05
 
 
-def target_table(frame: pd.DataFrame, device_kind: str) -> pd.DataFrame:
-    """Each target that applies to ``device_kind`` (``cpu`` or ``gpu``), per scene: the measured value and
-    whether it is met."""
+def target_table(frame: pd.DataFrame, device_kind: str, breakdown: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Each target that applies to ``device_kind`` (``cpu`` or ``gpu``), per scene: the measured value, whether it
+    is met, and for a missed one where its time goes in the same run (:func:`bottleneck`; ``breakdown``: the run's
+    cost breakdown, if it was timed)."""
     rows = []
     for what, method, column, bound, kind in TARGETS:
         if kind not in (device_kind, "both"):
@@ -332,12 +333,36 @@ def target_table(frame: pd.DataFrame, device_kind: str) -> pd.DataFrame:
             if row["nothing_to_guide"] and column == "ratio_to_brdf":
                 continue      # judged by the no-guidable bound below
             met = row[column] >= -bound if bound < 0 else row[column] <= bound   # a negative bound is a minimum
-            rows.append({"target": what, "scene": row["scene"], "measured": row[column], "met": bool(met)})
+            rows.append({"target": what, "scene": row["scene"], "measured": row[column], "met": bool(met),
+                         "bottleneck": "" if met else bottleneck(row, column, breakdown)})
     for _, row in frame[frame["nothing_to_guide"]].iterrows():
+        met = bool(row["ratio_to_brdf"] <= NO_GUIDABLE_BOUND)
         rows.append({"target": f"nothing to guide: `{row['method']}` ≤ {NO_GUIDABLE_BOUND}× `brdf`",
-                     "scene": row["scene"], "measured": row["ratio_to_brdf"],
-                     "met": bool(row["ratio_to_brdf"] <= NO_GUIDABLE_BOUND)})
+                     "scene": row["scene"], "measured": row["ratio_to_brdf"], "met": met,
+                     "bottleneck": "" if met else "the passes run brdf's kernel: machine noise"})
     return pd.DataFrame(rows)
+
+
+def bottleneck(row: pd.Series, column: str, breakdown: pd.DataFrame | None) -> str:
+    """Where the time of a missed target goes, from the same run: for a cost ratio, the parts of the method's bounce
+    over ``brdf`` (its cost breakdown's stages up to the method itself, the largest named), for the update share the
+    update's (or the trees' rebuild's) time per pass against the pass's kernel time."""
+    if column == "ratio_to_brdf" and breakdown is not None and not breakdown.empty:
+        stages = breakdown[(breakdown["scene"] == row["scene"]) & (breakdown["method"] == row["method"])]
+        own = stages.index[stages["integrator"] == row["method"]]
+        stages = stages.loc[: own[0]] if len(own) else stages.iloc[:0]
+        if not stages.empty:
+            largest = stages.loc[stages["increment_ratio"].idxmax(), "stage"]
+            parts = ", ".join(f"{stage} {increment:+.2f}" for stage, increment
+                              in zip(stages["stage"], stages["increment_ratio"]))
+            return f"the bounce's parts, × brdf's time: {parts}; largest: {largest}"
+    if column == "update_share":
+        return (f"the update: {row['update_ms']:.1f} ms per pass ({int(row['memo_pairs'])} visited pairs), the "
+                f"pass's kernels {row['kernel_ms_per_spp']:.1f} ms per spp")
+    if column == "refine_share":
+        return (f"the trees' rebuild in an update of {row['update_ms']:.1f} ms per pass, the pass's kernels "
+                f"{row['kernel_ms_per_spp']:.1f} ms per spp")
+    return "see the cost breakdown and profile (results/bench)"
 
 
 def _resolution(scene: mi.Scene) -> str:

@@ -102,7 +102,7 @@ def command_bench(args) -> None:
     write_table(frame, out / f"benchmark_{tag}", "Cost per spp of every method vs `brdf` and Mitsuba `path` (same "
                 f"run, {args.passes} interleaved passes of 8 spp after 2 warm-up passes, max depth 16; `trace-only`: "
                 "the throughput limit, `share_of_trace_limit`: rays/s as a fraction of its)", device,
-                command, sections={"Targets": target_table(frame, tag)})
+                command, sections={"Targets": target_table(frame, tag, breakdown)})
     if not breakdown.empty:
         write_table(breakdown, out / "cost_breakdown", "Cost breakdown of every guided method: kernel time per spp "
                     "with the parts of the bounce switched on one by one (same interleaved run as "

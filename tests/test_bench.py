@@ -1,6 +1,7 @@
 """The benchmark's cost breakdown and throughput limit on a tiny run (one timed pass, a 16x16 image), and the
 parsing of its kernel-size and profile parts."""
 
+import pandas as pd
 import pytest
 
 from guiding.bench import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, PassTiming, _guided_per_ray,
@@ -151,3 +152,27 @@ def test_a_guided_kernel_holds_more_instructions_than_brdfs():
     frame = kernel_table([("cornell-box", 1 / 16)], ["sarsa-sphere_inv"]).set_index("method")
     assert frame.loc["brdf", "instructions"] > 1000
     assert frame.loc["sarsa-sphere_inv", "ratio_to_brdf"] > 1.2
+
+
+def test_a_missed_target_names_the_part_of_the_bounce_its_time_goes_to():
+    """The Targets table names, for a missed cost ratio, the stages of the same run's breakdown up to the method
+    itself (not the instruments after it) and the largest of them; for the update share, the update's time."""
+    frame = pd.DataFrame([
+        {"scene": "box", "method": "brdf", "ratio_to_brdf": 1.0, "nothing_to_guide": False, "update_share": 0.0,
+         "share_of_trace_limit": 0.7, "ratio_to_path": 0.9, "refine_share": 0.0},
+        {"scene": "box", "method": "ours", "ratio_to_brdf": 1.5, "nothing_to_guide": False, "update_share": 0.05,
+         "update_ms": 12.5, "memo_pairs": 400, "kernel_ms_per_spp": 30.0, "share_of_trace_limit": 0.5,
+         "ratio_to_path": 1.3, "refine_share": 0.0}])
+    increments = {"classify": 0.1, "+sample": 0.2, "+pdf": 0.05, "+record": 0.15, "+statistics": 0.9,
+                  "bsdf paths": 0.95}
+    breakdown = pd.DataFrame([{"scene": "box", "method": "ours", "stage": stage,
+                               "integrator": "ours" if stage == "+record" else f"ours[{stage}]",
+                               "increment_ratio": increment} for stage, increment in increments.items()])
+    targets = target_table(frame, "cpu", breakdown).set_index("target")
+    ratio = targets.loc["`ours` ≤ 1.2× `brdf` per spp (CPU)"]
+    assert not ratio["met"]
+    assert ratio["bottleneck"] == ("the bounce's parts, × brdf's time: classify +0.10, +sample +0.20, +pdf +0.05, "
+                                   "+record +0.15; largest: +sample")
+    update = targets.loc["grid update ≤ 2 % of pass time (`ours`)"]
+    assert "12.5 ms per pass (400 visited pairs)" in update["bottleneck"]
+    assert targets.loc["`brdf` ≤ 1.0× Mitsuba `path` per spp", "bottleneck"] == ""

@@ -20,6 +20,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+#: Largest float32 below one: what is left of a sample stays in [0, 1).
+ONE_MINUS_EPS = 1 - 2 ** -24
 #: Floats per slot: threshold, alias bits, density of the slot's bin, density of its alias.
 SLOT_FIELDS = 4
 #: Bytes per bin of a table.
@@ -142,10 +144,21 @@ def _sweep(w, row_sum, threshold, alias, received_by, listed, small_count, size:
 def sample(slots: mi.Float, row: mi.UInt32, size: int, u: mi.Point2f,
            active: mi.Bool) -> tuple[mi.UInt32, mi.Float]:
     """A bin of row ``row`` drawn with ``u`` ∈ [0, 1)², and its density field: one packet gather."""
+    k, density, _ = sample_with_rest(slots, row, size, u, active)
+    return k, density
+
+
+def sample_with_rest(slots: mi.Float, row: mi.UInt32, size: int, u: mi.Point2f,
+                     active: mi.Bool) -> tuple[mi.UInt32, mi.Float, mi.Point2f]:
+    """:func:`sample`, and what is left of ``u``: a point of [0, 1)² uniform and independent of the bin drawn
+    (``u.x``'s place within its slot, ``u.y``'s within its side of the threshold), for a draw that goes on inside
+    the bin."""
     j = dr.minimum(mi.UInt32(u.x * size), size - 1)
     slot = dr.gather(mi.Vector4f, slots, row * size + j, active)
     own = u.y < slot.x
-    return (dr.select(own, j, dr.reinterpret_array(mi.UInt32, slot.y)), dr.select(own, slot.z, slot.w))
+    rest = mi.Point2f(u.x * size - mi.Float(j), dr.select(own, u.y / slot.x, (u.y - slot.x) / (1 - slot.x)))
+    return (dr.select(own, j, dr.reinterpret_array(mi.UInt32, slot.y)), dr.select(own, slot.z, slot.w),
+            dr.clip(rest, 0, ONE_MINUS_EPS))
 
 
 def density(slots: mi.Float, row: mi.UInt32, size: int, k: mi.UInt32, active: mi.Bool) -> mi.Float:

@@ -15,7 +15,9 @@ A root node has depth 1; a quadrant of a node at depth ``d`` has side ``2^-d``.
 descends from the root choosing quadrants with these probabilities (first the ``u`` half, then the ``v`` half,
 reusing the rescaled random number as in Müller's code), then picks a uniform point inside the leaf; the density is
 ``Π 4·prob`` over the descent (= leaf energy share / leaf area). Recording addresses a leaf by its slot
-``4n + q`` in an energy accumulator of the same size.
+``4n + q`` in an energy accumulator of the same size. The first levels are skipped: per tree, a table of its cells of
+side ``2^-jump_levels`` says where a descent stands below them, and an alias row draws a cell with its probability
+(:meth:`Forest.cells`, :class:`DeviceForest`).
 """
 
 from __future__ import annotations
@@ -27,9 +29,14 @@ import mitsuba as mi
 import numpy as np
 
 from ..directions import safe_normalize
+from . import alias_rows
+from .alias_rows import ONE_MINUS_EPS     # samples and coordinates are clamped to [0, ONE_MINUS_EPS]
 
-#: Largest float32 below one: samples and coordinates are clamped to [0, ONE_MINUS_EPS].
-ONE_MINUS_EPS = float(np.nextafter(np.float32(1), np.float32(0)))
+#: How far inside a leaf's edges a drawn point stays: four float32 steps of [0.5, 1), a quarter of the side of the
+#: smallest leaf (2^-20).
+EDGE_OFFSET = 2.0 ** -22
+#: A cell's entry with this bit is a leaf slot (the descent ended within the first levels), without it a node.
+LEAF_BIT = 0x80000000
 INV_4PI = 1.0 / (4.0 * math.pi)
 
 SPLIT_COPY = "copy"        # keep the structure as it is
@@ -213,6 +220,31 @@ class Forest:
         tot = self.energy.sum(axis=1, keepdims=True)
         return np.where(tot > 0, self.energy / np.where(tot > 0, tot, 1), 0.25)
 
+    def cells(self, levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where a descent stands after ``levels`` levels, in each cell of side ``2^-levels`` of each tree's square
+        (cell ``row·2^levels + column``, the column along ``u``): the node it reached (-1 where it ended in a leaf
+        before), the slot of that leaf (-1 where it did not), and the cell's probability under the trees' float32
+        probabilities; each of shape (trees, 4^levels)."""
+        trees = self.n_trees
+        node, slot, mass = np.arange(trees)[:, None], np.full((trees, 1), -1), np.ones((trees, 1))
+        side = 1
+        for _ in range(levels):
+            inner = (node >= 0)[..., None]
+            at = np.maximum(node, 0)
+            child = np.where(inner, self.child[at], -1)
+            # The device's probabilities (float32) of the nodes reached, and their shares as a descent takes them.
+            energy = self.energy[at]
+            total = energy.sum(axis=-1, keepdims=True)
+            prob = np.where(total > 0, energy / np.where(total > 0, total, 1), 0.25).astype(np.float32)
+            share = np.where(inner, prob / prob.sum(axis=-1, keepdims=True, dtype=np.float64), 0.25)
+            # Quadrant q = qx + 2·qy of a cell (row, column) is the cell (2·row + qy, 2·column + qx) of the next level.
+            grid = lambda a: a.reshape(trees, side, side, 2, 2).transpose(0, 1, 3, 2, 4).reshape(trees, 4 * side * side)
+            slot = grid(np.where(inner, np.where(child < 0, 4 * at[..., None] + np.arange(4), -1), slot[..., None]))
+            mass = grid(mass[..., None] * share)
+            node = grid(child)
+            side *= 2
+        return node, slot, mass
+
 
 # ===================================================================================================================
 #  D-trees on the device
@@ -234,12 +266,6 @@ def padded(a: np.ndarray, minimum: int = 2) -> np.ndarray:
     out = buffer[offset:offset + a.nbytes].view(a.dtype)
     out[:] = a
     return out
-
-
-def _prev_float(x):
-    """The largest float below ``x`` (``x`` > 0)."""
-    return mi.Point2f(dr.reinterpret_array(mi.Float, dr.reinterpret_array(mi.UInt32, x.x) - 1),
-                      dr.reinterpret_array(mi.Float, dr.reinterpret_array(mi.UInt32, x.y) - 1))
 
 
 def _node_probabilities(prob: mi.Float, node: mi.UInt32, active: mi.Bool):
@@ -265,7 +291,13 @@ def _quadrant(right: mi.Bool, up: mi.Bool) -> mi.UInt32:
 class DeviceForest:
     """A :class:`Forest` uploaded for sampling, density evaluation and leaf lookup inside kernels."""
 
-    def __init__(self, forest: Forest):
+    def __init__(self, forest: Forest, jump_levels: int = 3, densities: bool = True):
+        """``jump_levels``: the levels a descent skips. Each tree's square is cut into ``4^jump_levels`` cells of
+        side ``2^-jump_levels``, and a table per cell holds where a descent stands after these levels
+        (:meth:`Forest.cells`) and, as alias rows, each cell's probability: a descent starts there with one read of
+        its cell instead of two per level. 0: every descent starts at the root (Müller's). ``densities=False``: a
+        forest whose lookups find leaves only (the SD-tree's recording trees), without the cells' alias rows."""
+        self.jump_levels = jump_levels
         self.n_nodes = forest.n_nodes
         self.n_trees = forest.n_trees
         child = np.where(forest.child < 0, 0, forest.child).astype(np.uint32).ravel()
@@ -274,10 +306,21 @@ class DeviceForest:
         self.tree_of_node = mi.UInt32(padded(forest.tree.astype(np.uint32)))
         self.has_energy = mi.Bool(padded(forest.totals() > 0))
         dr.eval(self.child, self.prob, self.tree_of_node, self.has_energy)
+        self.cells = 4 ** jump_levels
+        self.cell_alias = None
+        if jump_levels > 0:
+            node, slot, mass = forest.cells(jump_levels)
+            self.cell_entry = mi.UInt32(padded(np.where(node >= 0, node, slot | LEAF_BIT).astype(np.uint32).ravel()))
+            # The cells' alias rows give a cell's density (per unit area of the square) to draws and lookups alike.
+            self.cell_alias = (alias_rows.build(mi.Float(mass.astype(np.float32).ravel()), self.cells, scale=self.cells)
+                               if densities else None)
+            dr.eval(self.cell_entry)
 
     @property
     def nbytes(self) -> int:
-        return 4 * (2 * 4 * self.n_nodes + self.n_nodes) + self.n_trees
+        cells = self.n_trees * self.cells * (4 + (alias_rows.SLOT_BYTES if self.cell_alias is not None else 0)) \
+            if self.jump_levels else 0
+        return 4 * (2 * 4 * self.n_nodes + self.n_nodes) + self.n_trees + cells
 
     # ----------------------------------------------------------------------------------------- device code
     @dr.syntax
@@ -292,13 +335,13 @@ class DeviceForest:
         finds the density of the BSDF's direction in the others in one descent instead of two. ``with_pdf=False``
         (lookups only) skips the probabilities."""
         child, prob = self.child, self.prob
-        node = mi.UInt32(tree)
-        x = mi.Point2f(point)
-        origin = mi.Point2f(0)
-        size = mi.Float(1)
-        pdf = mi.Float(1)
-        slot = mi.UInt32(0)
-        go = mi.Bool(active)
+        if dr.hint(self.jump_levels > 0, mode="scalar"):
+            node, slot, x, origin, pdf = self._start(tree, point, draw, active, with_pdf)
+            go = mi.Bool(active) & (node != 0)
+        else:
+            node, slot, x, origin, pdf = mi.UInt32(tree), mi.UInt32(0), mi.Point2f(point), mi.Point2f(0), mi.Float(1)
+            go = mi.Bool(active)
+        size = mi.Float(2.0 ** -self.jump_levels)
         while go:
             base = node * 4
             if dr.hint(with_pdf or draw is not False, mode="scalar"):
@@ -338,10 +381,40 @@ class DeviceForest:
             else:
                 node = dr.gather(mi.UInt32, child, slot, go)
             go &= node != 0
-        # A leaf of side 2^-20 spans only a few dozen floats: keep the rounded point inside the leaf it came from.
-        upper = _prev_float(origin + size)
-        uv = mi.Point2f(dr.minimum(origin.x + size * x.x, upper.x), dr.minimum(origin.y + size * x.y, upper.y))
+        # A leaf of side 2^-20 spans only a few dozen floats: keep the point inside the leaf it came from, off its
+        # edges by a few of them, so that the direction made of it (whose φ is rounded in sincos) lies in the leaf
+        # too, and none is the pole u = 0, whose φ is lost.
+        uv = dr.clip(origin + size * x, origin + EDGE_OFFSET, origin + size - EDGE_OFFSET)
         return slot, uv, pdf
+
+    def _start(self, tree, point, draw, active, with_pdf):
+        """Where the descent of :meth:`descend` stands after ``jump_levels`` levels, from its cell's tables: the
+        node (0 where it ended in a leaf), the leaf's slot there, the point within the cell, the cell's corner and
+        its density. Drawing lanes draw the cell from its alias row (and go on with what is left of ``point``),
+        looking lanes take the cell ``point`` lies in."""
+        side, cells, row = 2 ** self.jump_levels, self.cells, mi.UInt32(tree)
+        if dr.hint(draw is not False, mode="scalar"):
+            drawing = mi.Bool(active) & draw
+            drawn_cell, drawn_density, drawn = alias_rows.sample_with_rest(self.cell_alias, row, cells,
+                                                                           mi.Point2f(point), drawing)
+        else:
+            drawn_cell = drawn_density = drawn = None
+        if dr.hint(draw is not True, mode="scalar"):
+            scaled = mi.Point2f(point) * side
+            column, cell_row = dr.minimum(mi.UInt32(scaled.x), side - 1), dr.minimum(mi.UInt32(scaled.y), side - 1)
+            looked_cell = cell_row * side + column
+            looked = dr.clip(scaled - mi.Point2f(mi.Float(column), mi.Float(cell_row)), 0, ONE_MINUS_EPS)
+            looking = mi.Bool(active) if draw is False else mi.Bool(active) & ~draw
+            looked_density = (alias_rows.density(self.cell_alias, row, cells, looked_cell, looking)
+                              if with_pdf else mi.Float(1))
+        else:
+            looked_cell = looked_density = looked = None
+        cell = _per_lane(draw, drawn_cell, looked_cell)
+        entry = dr.gather(mi.UInt32, self.cell_entry, row * cells + cell, active)
+        leaf = (entry & LEAF_BIT) != 0
+        corner = mi.Point2f(mi.Float(cell % side), mi.Float(cell // side)) / side
+        return (dr.select(leaf, 0, entry), dr.select(leaf, entry & (LEAF_BIT - 1), 0), _per_lane(draw, drawn, looked),
+                corner, _per_lane(draw, drawn_density, looked_density))
 
     def sample_uv(self, tree, sample, active=True):
         """Descend tree ``tree`` with the 2D ``sample``: a point of the square and its density there."""

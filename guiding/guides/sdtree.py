@@ -76,6 +76,7 @@ class _TreeGuide(Guide):
         self.uniform_empty_dtrees = parameters.uniform_empty_dtrees
         self.guide_delta_mixtures = parameters.guide_delta_mixtures
         self.learn_bsdf_fraction = parameters.learn_bsdf_fraction
+        self.jump_levels = parameters.jump_levels
         self._fraction: LearnedBsdfFraction | None = None   # the learned shares (made by prepare)
         self.built = False
         self._log: VertexLog | None = None               # how the paths of the pass log their vertices
@@ -372,8 +373,8 @@ class SDTreeGuide(_TreeGuide):
         self._sampling_host = Forest.empty(1)
         self._recording_host = Forest.empty(1).rebuild([0], SPLIT_REFINE, self.rho, self.dtree_max_depth,
                                                        keep_energy=False, max_nodes=self.max_nodes)
-        self._sampling = DeviceForest(self._sampling_host)
-        self._recording = DeviceForest(self._recording_host)
+        self._sampling = DeviceForest(self._sampling_host, self.jump_levels)
+        self._recording = DeviceForest(self._recording_host, self.jump_levels, densities=False)
         self._fraction = self._learned_shares(1)
         self._reset_accumulators()
         self._recording_on = True
@@ -445,8 +446,8 @@ class SDTreeGuide(_TreeGuide):
                                              keep_energy=False, max_nodes=self.max_nodes)
         host_seconds = time.perf_counter() - start
         self._s_device = self.stree.to_device(leaf_boxes=self._splat_jittered())
-        self._sampling = DeviceForest(self._sampling_host)
-        self._recording = DeviceForest(self._recording_host)
+        self._sampling = DeviceForest(self._sampling_host, self.jump_levels)
+        self._recording = DeviceForest(self._recording_host, self.jump_levels, densities=False)
         self._reset_accumulators()
         self.built = True
         dr.sync_thread()
@@ -502,7 +503,7 @@ class QuadtreeGridGuide(_TreeGuide):
         n = self._cells.count
         self._forest = Forest.empty(n).rebuild(np.arange(n), SPLIT_GROW, self.rho, self.dtree_max_depth,
                                                keep_energy=True, max_nodes=self.max_nodes)
-        self._sampling = self._recording = DeviceForest(self._forest)
+        self._sampling = self._recording = DeviceForest(self._forest, self.jump_levels)
         self._fraction = self._learned_shares(n)
         self._reset_accumulators()
         self.built = False
@@ -520,7 +521,7 @@ class QuadtreeGridGuide(_TreeGuide):
         self._forest = self._forest.rebuild(np.arange(self._forest.n_trees), SPLIT_GROW, self.rho,
                                             self.dtree_max_depth, keep_energy=True, max_nodes=self.max_nodes)
         host_seconds = time.perf_counter() - start
-        self._sampling = self._recording = DeviceForest(self._forest)
+        self._sampling = self._recording = DeviceForest(self._forest, self.jump_levels)
         self._reset_accumulators()
         self.built = True
         dr.sync_thread()
