@@ -349,8 +349,9 @@ def bottleneck(row: pd.Series, column: str, breakdown: pd.DataFrame | None) -> s
     update's (or the trees' rebuild's) time per pass against the pass's kernel time."""
     if column == "ratio_to_brdf" and breakdown is not None and not breakdown.empty:
         stages = breakdown[(breakdown["scene"] == row["scene"]) & (breakdown["method"] == row["method"])]
+        stages = stages.reset_index(drop=True)
         own = stages.index[stages["integrator"] == row["method"]]
-        stages = stages.loc[: own[0]] if len(own) else stages.iloc[:0]
+        stages = stages.iloc[: own[0] + 1] if len(own) else stages.iloc[:0]
         if not stages.empty:
             largest = stages.loc[stages["increment_ratio"].idxmax(), "stage"]
             parts = ", ".join(f"{stage} {increment:+.2f}" for stage, increment
@@ -362,7 +363,9 @@ def bottleneck(row: pd.Series, column: str, breakdown: pd.DataFrame | None) -> s
     if column == "refine_share":
         return (f"the trees' rebuild in an update of {row['update_ms']:.1f} ms per pass, the pass's kernels "
                 f"{row['kernel_ms_per_spp']:.1f} ms per spp")
-    return "see the cost breakdown and profile (results/bench)"
+    if column == "ratio_to_brdf":
+        return "no cost breakdown in this run (--no-breakdown)"
+    return "where the kernels' time goes: python -m guiding bench --part profile"
 
 
 def _resolution(scene: mi.Scene) -> str:

@@ -213,11 +213,37 @@ class GuideAdapter:
 
 def chi_square(sample_func, pdf_func, domain=None, test_count: int = 1, **options) -> tuple[bool, str]:
     """Mitsuba's chi-square test: do the samples of ``sample_func`` follow the density ``pdf_func`` reports? (It
-    also fails a density that does not integrate to 1.) ``domain`` is a sphere by default, ``test_count`` the
-    number of tests the caller runs (the significance level is Šidák-corrected for them) and ``options`` go to
-    ``ChiSquareTest`` (``sample_dim``, ``sample_count``, ``res``, ``ires``). Returns the verdict and the test's
-    messages, printing nothing."""
-    from mitsuba.chi2 import ChiSquareTest, SphericalDomain
+    also fails a density that does not integrate to 1.) ``domain`` is the sphere by default (:func:`sphere_domain`),
+    ``test_count`` the number of tests the caller runs (the significance level is Šidák-corrected for them) and
+    ``options`` go to ``ChiSquareTest`` (``sample_dim``, ``sample_count``, ``res``, ``ires``). Returns the verdict
+    and the test's messages, printing nothing."""
+    from mitsuba.chi2 import ChiSquareTest
 
-    test = ChiSquareTest(domain=domain or SphericalDomain(), sample_func=sample_func, pdf_func=pdf_func, **options)
+    domain = domain or sphere_domain(options.get("res", 101))
+    test = ChiSquareTest(domain=domain, sample_func=sample_func, pdf_func=pdf_func, **options)
     return test.run(test_count=test_count, quiet=True), test.messages
+
+
+def sphere_domain(res: int, margin: float = 1e-3):
+    """Mitsuba's sphere of (φ, −cos θ) for a histogram of resolution ``res``, whose density evaluations stay
+    ``margin`` of a cell inside their cell. Mitsuba's trapezoid rule puts a cell's end nodes 1e-4 of a step (3e-7
+    rad at ``res`` 64) inside it; a direction made of such a node came back on the other side of the edge at some
+    edges (φ = −π/2, in float32), and a density with a jump there (a D-tree's leaf edges, which fall on the
+    histogram's) was integrated with the neighbour's value: the guide's delta-mixture test rejected 5 of 12 seeds
+    of the chi-square test before this, p ≈ 0 with 4 M samples."""
+    from mitsuba.chi2 import SphericalDomain
+
+    class CellInterior(SphericalDomain):
+        cells = mi.ScalarVector2u(max(int(res / SphericalDomain().aspect()), 1), res)   # as ChiSquareTest lays out
+
+        def map_forward(self, p):
+            low, high = self.bounds().min, self.bounds().max
+            inside = []
+            for axis in range(2):
+                size = (high[axis] - low[axis]) / self.cells[axis]
+                t = (mi.Float64(p[axis]) - low[axis]) / size      # float64: a node 1e-4 of a step in keeps its side
+                cell = dr.floor(t)
+                inside.append(mi.Float(low[axis] + (cell + dr.clip(t - cell, margin, 1 - margin)) * size))
+            return super().map_forward(mi.Point2f(*inside))
+
+    return CellInterior()

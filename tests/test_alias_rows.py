@@ -7,7 +7,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from guiding.guides.alias_rows import SLOT_FIELDS, build, density, drawn_probability, sample, sample_with_rest
+from guiding.guides.alias_rows import SLOT_FIELDS, build, density, drawn_probability, pick, sample
 
 
 def _rows(size: int, rows: int, rng) -> np.ndarray:
@@ -66,25 +66,25 @@ def test_samples_follow_the_density():
     assert (np.abs(counts - expected) <= 5 * np.sqrt(expected) + 1).all()
 
 
-def test_what_is_left_of_a_sample_is_uniform_in_each_bin_drawn():
-    """`sample_with_rest` draws the bins `sample` draws, and what it leaves of the sample is uniform on [0, 1)²
-    whichever bin was drawn (each cell of a 4 × 4 grid within five standard deviations of its expected count), so a
-    draw may go on inside the bin with it."""
+def test_what_is_left_of_a_pick_is_uniform_in_each_bin_drawn():
+    """`pick` draws the bins `sample` draws from the same slot and threshold sample, and what it leaves of the
+    threshold sample is uniform on [0, 1) whichever bin was drawn (each of 16 intervals within five standard
+    deviations of its expected count), so a draw may go on inside the bin with it."""
     size, n = 5, 1_000_000
     rng = np.random.default_rng(11)
     weight = np.array([[0.1, 3.0, 0.0, 1.0, 0.45]], dtype=np.float32)
     slots = build(mi.Float(weight.ravel()), size)
     u = mi.Point2f(mi.Float(rng.random(n, dtype=np.float32)), mi.Float(rng.random(n, dtype=np.float32)))
     row = mi.UInt32(np.zeros(n, dtype=np.uint32))
-    k, drawn_density, rest = sample_with_rest(slots, row, size, u, mi.Bool(True))
+    j = dr.minimum(mi.UInt32(u.x * size), size - 1)
+    k, drawn_density, rest = pick(slots, row, size, j, u.y, mi.Bool(True))
     plain_k, plain_density = sample(slots, row, size, u, mi.Bool(True))
     assert np.array_equal(np.array(k), np.array(plain_k))
     assert np.array_equal(np.array(drawn_density), np.array(plain_density))
-    rest = np.stack([np.array(rest.x), np.array(rest.y)], axis=1)
+    rest = np.array(rest)
     assert ((rest >= 0) & (rest < 1)).all()
-    cell = (rest[:, 1] * 4).astype(int) * 4 + (rest[:, 0] * 4).astype(int)
     for bin_drawn in np.unique(np.array(k)):
-        counts = np.bincount(cell[np.array(k) == bin_drawn], minlength=16)
+        counts = np.bincount((rest[np.array(k) == bin_drawn] * 16).astype(int), minlength=16)
         expected = counts.sum() / 16
         assert (np.abs(counts - expected) <= 5 * np.sqrt(expected)).all(), (bin_drawn, counts)
     assert set(np.unique(np.array(k))) == {0, 1, 3, 4}

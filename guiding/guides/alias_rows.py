@@ -144,19 +144,18 @@ def _sweep(w, row_sum, threshold, alias, received_by, listed, small_count, size:
 def sample(slots: mi.Float, row: mi.UInt32, size: int, u: mi.Point2f,
            active: mi.Bool) -> tuple[mi.UInt32, mi.Float]:
     """A bin of row ``row`` drawn with ``u`` ∈ [0, 1)², and its density field: one packet gather."""
-    k, density, _ = sample_with_rest(slots, row, size, u, active)
+    k, density, _ = pick(slots, row, size, dr.minimum(mi.UInt32(u.x * size), size - 1), u.y, active)
     return k, density
 
 
-def sample_with_rest(slots: mi.Float, row: mi.UInt32, size: int, u: mi.Point2f,
-                     active: mi.Bool) -> tuple[mi.UInt32, mi.Float, mi.Point2f]:
-    """:func:`sample`, and what is left of ``u``: a point of [0, 1)² uniform and independent of the bin drawn
-    (``u.x``'s place within its slot, ``u.y``'s within its side of the threshold), for a draw that goes on inside
-    the bin."""
-    j = dr.minimum(mi.UInt32(u.x * size), size - 1)
+def pick(slots: mi.Float, row: mi.UInt32, size: int, j: mi.UInt32, v: mi.Float,
+         active: mi.Bool) -> tuple[mi.UInt32, mi.Float, mi.Float]:
+    """The bin of row ``row`` that slot ``j`` (uniform over the row's slots) gives for ``v`` ∈ [0, 1) (its own
+    below the slot's threshold, its alias above), its density field, and what is left of ``v``: uniform on [0, 1)
+    and independent of the bin (``v``'s place within its side of the threshold), for a draw that goes on inside it."""
     slot = dr.gather(mi.Vector4f, slots, row * size + j, active)
-    own = u.y < slot.x
-    rest = mi.Point2f(u.x * size - mi.Float(j), dr.select(own, u.y / slot.x, (u.y - slot.x) / (1 - slot.x)))
+    own = v < slot.x
+    rest = dr.select(own, v / slot.x, (v - slot.x) / (1 - slot.x))
     return (dr.select(own, j, dr.reinterpret_array(mi.UInt32, slot.y)), dr.select(own, slot.z, slot.w),
             dr.clip(rest, 0, ONE_MINUS_EPS))
 

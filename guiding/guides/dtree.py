@@ -32,8 +32,9 @@ from ..directions import safe_normalize
 from . import alias_rows
 from .alias_rows import ONE_MINUS_EPS     # samples and coordinates are clamped to [0, ONE_MINUS_EPS]
 
-#: How far inside a leaf's edges a drawn point stays: four float32 steps of [0.5, 1), a quarter of the side of the
-#: smallest leaf (2^-20).
+#: How far inside a leaf's edges a drawn point stays (at most a quarter of the leaf's side): four float32 steps of
+#: [0.5, 1). Points within it of an edge are pressed onto it, so inside the smallest leaves (side 2^-20, 16 floats)
+#: the points are not uniform; the leaf's probability, and its density, are unchanged.
 EDGE_OFFSET = 2.0 ** -22
 #: A cell's entry with this bit is a leaf slot (the descent ended within the first levels), without it a node.
 LEAF_BIT = 0x80000000
@@ -215,10 +216,12 @@ class Forest:
             energy = np.zeros_like(energy)
         return Forest(child, energy, np.concatenate(levels_depth), np.concatenate(levels_tree), n_new)
 
-    def probabilities(self) -> np.ndarray:
-        """Each quadrant's share of its node's energy (1/4 each for a node without energy), shape (N, 4)."""
-        tot = self.energy.sum(axis=1, keepdims=True)
-        return np.where(tot > 0, self.energy / np.where(tot > 0, tot, 1), 0.25)
+    def probabilities(self, nodes: np.ndarray | None = None) -> np.ndarray:
+        """Each quadrant's share of its node's energy (1/4 each for a node without energy), shape (N, 4), or of the
+        nodes ``nodes`` (shape ``nodes.shape + (4,)``)."""
+        energy = self.energy if nodes is None else self.energy[nodes]
+        tot = energy.sum(axis=-1, keepdims=True)
+        return np.where(tot > 0, energy / np.where(tot > 0, tot, 1), 0.25)
 
     def cells(self, levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Where a descent stands after ``levels`` levels, in each cell of side ``2^-levels`` of each tree's square
@@ -233,12 +236,12 @@ class Forest:
             at = np.maximum(node, 0)
             child = np.where(inner, self.child[at], -1)
             # The device's probabilities (float32) of the nodes reached, and their shares as a descent takes them.
-            energy = self.energy[at]
-            total = energy.sum(axis=-1, keepdims=True)
-            prob = np.where(total > 0, energy / np.where(total > 0, total, 1), 0.25).astype(np.float32)
+            prob = self.probabilities(at).astype(np.float32)
             share = np.where(inner, prob / prob.sum(axis=-1, keepdims=True, dtype=np.float64), 0.25)
-            # Quadrant q = qx + 2·qy of a cell (row, column) is the cell (2·row + qy, 2·column + qx) of the next level.
-            grid = lambda a: a.reshape(trees, side, side, 2, 2).transpose(0, 1, 3, 2, 4).reshape(trees, 4 * side * side)
+
+            def grid(a):      # quadrant q = qx + 2·qy of cell (row, column) is cell (2·row + qy, 2·column + qx) below
+                return a.reshape(trees, side, side, 2, 2).transpose(0, 1, 3, 2, 4).reshape(trees, 4 * side * side)
+
             slot = grid(np.where(inner, np.where(child < 0, 4 * at[..., None] + np.arange(4), -1), slot[..., None]))
             mass = grid(mass[..., None] * share)
             node = grid(child)
@@ -306,19 +309,19 @@ class DeviceForest:
         self.tree_of_node = mi.UInt32(padded(forest.tree.astype(np.uint32)))
         self.has_energy = mi.Bool(padded(forest.totals() > 0))
         dr.eval(self.child, self.prob, self.tree_of_node, self.has_energy)
-        self.cells = 4 ** jump_levels
+        self.n_cells = 4 ** jump_levels
         self.cell_alias = None
         if jump_levels > 0:
             node, slot, mass = forest.cells(jump_levels)
             self.cell_entry = mi.UInt32(padded(np.where(node >= 0, node, slot | LEAF_BIT).astype(np.uint32).ravel()))
             # The cells' alias rows give a cell's density (per unit area of the square) to draws and lookups alike.
-            self.cell_alias = (alias_rows.build(mi.Float(mass.astype(np.float32).ravel()), self.cells, scale=self.cells)
+            self.cell_alias = (alias_rows.build(mi.Float(mass.astype(np.float32).ravel()), self.n_cells, scale=self.n_cells)
                                if densities else None)
             dr.eval(self.cell_entry)
 
     @property
     def nbytes(self) -> int:
-        cells = self.n_trees * self.cells * (4 + (alias_rows.SLOT_BYTES if self.cell_alias is not None else 0)) \
+        cells = self.n_trees * self.n_cells * (4 + (alias_rows.SLOT_BYTES if self.cell_alias is not None else 0)) \
             if self.jump_levels else 0
         return 4 * (2 * 4 * self.n_nodes + self.n_nodes) + self.n_trees + cells
 
@@ -327,9 +330,10 @@ class DeviceForest:
     def descend(self, tree, point, draw, active=True, with_pdf=True):
         """Descend tree ``tree`` to a leaf: (its slot ``4·node + q``, the point drawn, the density there).
 
-        Lanes with ``draw`` sample: ``point`` is a 2D sample, quadrants are chosen with their probabilities (first the
-        ``u`` half, then the ``v`` half, reusing the rescaled random number as in Müller's code) and the point drawn is
-        uniform in the leaf. The other lanes look a point up: ``point`` lies in the square, the leaf is the one that
+        Lanes with ``draw`` sample: ``point`` is a 2D sample, the cell below the first ``jump_levels`` levels is drawn
+        with its probability (:meth:`_start`), then quadrants with theirs (first the ``u`` half, then the ``v`` half,
+        reusing the rescaled random number as in Müller's code), and the point drawn is uniform in the leaf (up to
+        :data:`EDGE_OFFSET`). The other lanes look a point up: ``point`` lies in the square, the leaf is the one that
         contains it, and the point returned means nothing. ``draw`` is a Python bool (every lane alike; only that
         half of the loop is traced) or a mask, with which the mixture sampler draws from the tree in some lanes and
         finds the density of the BSDF's direction in the others in one descent instead of two. ``with_pdf=False``
@@ -381,39 +385,37 @@ class DeviceForest:
             else:
                 node = dr.gather(mi.UInt32, child, slot, go)
             go &= node != 0
-        # A leaf of side 2^-20 spans only a few dozen floats: keep the point inside the leaf it came from, off its
-        # edges by a few of them, so that the direction made of it (whose φ is rounded in sincos) lies in the leaf
-        # too, and none is the pole u = 0, whose φ is lost.
-        uv = dr.clip(origin + size * x, origin + EDGE_OFFSET, origin + size - EDGE_OFFSET)
+        # Keep the point inside the leaf it came from, off its edges (see EDGE_OFFSET), so that the direction made of
+        # it (whose φ is rounded in sincos) lies in the leaf too, and none is the pole u = 0, whose φ is lost.
+        margin = dr.minimum(size * 0.25, EDGE_OFFSET)
+        uv = dr.clip(origin + size * x, origin + margin, origin + size - margin)
         return slot, uv, pdf
 
     def _start(self, tree, point, draw, active, with_pdf):
         """Where the descent of :meth:`descend` stands after ``jump_levels`` levels, from its cell's tables: the
         node (0 where it ended in a leaf), the leaf's slot there, the point within the cell, the cell's corner and
-        its density. Drawing lanes draw the cell from its alias row (and go on with what is left of ``point``),
-        looking lanes take the cell ``point`` lies in."""
-        side, cells, row = 2 ** self.jump_levels, self.cells, mi.UInt32(tree)
+        its density. Looking lanes take the cell ``point`` lies in; drawing lanes take that cell's slot of the tree's
+        alias row (uniform over the cells, the bits of both coordinates alike), its threshold against the point's
+        place within the cell in ``v``, and go on with the point's place in ``u`` and what is left of it in ``v``."""
+        side, n_cells, row = 2 ** self.jump_levels, self.n_cells, mi.UInt32(tree)
+        scaled = mi.Point2f(point) * side
+        column, cell_row = dr.minimum(mi.UInt32(scaled.x), side - 1), dr.minimum(mi.UInt32(scaled.y), side - 1)
+        cell = cell_row * side + column
+        within = dr.clip(scaled - mi.Point2f(mi.Float(column), mi.Float(cell_row)), 0, ONE_MINUS_EPS)
+        drawn_cell = drawn_density = drawn = looked_density = None
         if dr.hint(draw is not False, mode="scalar"):
-            drawing = mi.Bool(active) & draw
-            drawn_cell, drawn_density, drawn = alias_rows.sample_with_rest(self.cell_alias, row, cells,
-                                                                           mi.Point2f(point), drawing)
-        else:
-            drawn_cell = drawn_density = drawn = None
+            drawn_cell, drawn_density, rest = alias_rows.pick(self.cell_alias, row, n_cells, cell, within.y,
+                                                              mi.Bool(active) & draw)
+            drawn = mi.Point2f(within.x, rest)
         if dr.hint(draw is not True, mode="scalar"):
-            scaled = mi.Point2f(point) * side
-            column, cell_row = dr.minimum(mi.UInt32(scaled.x), side - 1), dr.minimum(mi.UInt32(scaled.y), side - 1)
-            looked_cell = cell_row * side + column
-            looked = dr.clip(scaled - mi.Point2f(mi.Float(column), mi.Float(cell_row)), 0, ONE_MINUS_EPS)
             looking = mi.Bool(active) if draw is False else mi.Bool(active) & ~draw
-            looked_density = (alias_rows.density(self.cell_alias, row, cells, looked_cell, looking)
-                              if with_pdf else mi.Float(1))
-        else:
-            looked_cell = looked_density = looked = None
-        cell = _per_lane(draw, drawn_cell, looked_cell)
-        entry = dr.gather(mi.UInt32, self.cell_entry, row * cells + cell, active)
+            looked_density = (alias_rows.density(self.cell_alias, row, n_cells, cell, looking) if with_pdf
+                              else mi.Float(1))
+        cell = _per_lane(draw, drawn_cell, cell)
+        entry = dr.gather(mi.UInt32, self.cell_entry, row * n_cells + cell, active)
         leaf = (entry & LEAF_BIT) != 0
         corner = mi.Point2f(mi.Float(cell % side), mi.Float(cell // side)) / side
-        return (dr.select(leaf, 0, entry), dr.select(leaf, entry & (LEAF_BIT - 1), 0), _per_lane(draw, drawn, looked),
+        return (dr.select(leaf, 0, entry), dr.select(leaf, entry & (LEAF_BIT - 1), 0), _per_lane(draw, drawn, within),
                 corner, _per_lane(draw, drawn_density, looked_density))
 
     def sample_uv(self, tree, sample, active=True):

@@ -193,7 +193,8 @@ class TreeParameters:
         KL divergence from the product f·cos·L to the mixture (Müller 2019; :mod:`~guiding.guides.bsdf_fraction`),
         within :data:`LEARNED_SHARE_RANGE`; False: ``bsdf_fraction`` everywhere (default False).
       jump_levels: the D-tree levels a descent skips, reading where it stands after them from a table per cell of
-        side 2^-jump_levels (:class:`~guiding.guides.dtree.DeviceForest`); 0: from the root (default 3).
+        side 2^-jump_levels (:class:`~guiding.guides.dtree.DeviceForest`; 4^jump_levels cells per tree, at most
+        4); 0: from the root (default 3).
     """
 
     rho: float = 0.01
@@ -207,7 +208,7 @@ class TreeParameters:
 
     def __post_init__(self):
         _check(0 < self.rho <= 1, f"rho must be in (0, 1], got {self.rho}")
-        _check(0 <= self.jump_levels <= 8, f"jump_levels must be in [0, 8], got {self.jump_levels}")
+        _check(0 <= self.jump_levels <= 4, f"jump_levels must be in [0, 4], got {self.jump_levels}")
         _check(self.dtree_max_depth >= 1, f"dtree_max_depth must be >= 1, got {self.dtree_max_depth}")
         _check(0 <= self.bsdf_fraction < 1, f"bsdf_fraction must be in [0, 1), got {self.bsdf_fraction}")
         _check(self.max_nodes is None or self.max_nodes >= 1, f"max_nodes must be >= 1, got {self.max_nodes}")
