@@ -239,7 +239,7 @@ class Forest:
             prob = self.probabilities(at).astype(np.float32)
             share = np.where(inner, prob / prob.sum(axis=-1, keepdims=True, dtype=np.float64), 0.25)
 
-            def grid(a):      # quadrant q = qx + 2·qy of cell (row, column) is cell (2·row + qy, 2·column + qx) below
+            def grid(a):      # quadrant q = qx + 2·qy of cell (row, column): cell (2·row + qy, 2·column + qx) below
                 return a.reshape(trees, side, side, 2, 2).transpose(0, 1, 3, 2, 4).reshape(trees, 4 * side * side)
 
             slot = grid(np.where(inner, np.where(child < 0, 4 * at[..., None] + np.arange(4), -1), slot[..., None]))
@@ -315,14 +315,16 @@ class DeviceForest:
             node, slot, mass = forest.cells(jump_levels)
             self.cell_entry = mi.UInt32(padded(np.where(node >= 0, node, slot | LEAF_BIT).astype(np.uint32).ravel()))
             # The cells' alias rows give a cell's density (per unit area of the square) to draws and lookups alike.
-            self.cell_alias = (alias_rows.build(mi.Float(mass.astype(np.float32).ravel()), self.n_cells, scale=self.n_cells)
-                               if densities else None)
+            if densities:
+                self.cell_alias = alias_rows.build(mi.Float(mass.astype(np.float32).ravel()), self.n_cells,
+                                                   scale=self.n_cells)
             dr.eval(self.cell_entry)
 
     @property
     def nbytes(self) -> int:
-        cells = self.n_trees * self.n_cells * (4 + (alias_rows.SLOT_BYTES if self.cell_alias is not None else 0)) \
-            if self.jump_levels else 0
+        cells = 0
+        if self.jump_levels:
+            cells = self.n_trees * self.n_cells * (4 + (alias_rows.SLOT_BYTES if self.cell_alias is not None else 0))
         return 4 * (2 * 4 * self.n_nodes + self.n_nodes) + self.n_trees + cells
 
     # ----------------------------------------------------------------------------------------- device code
