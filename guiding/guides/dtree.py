@@ -306,9 +306,9 @@ class DeviceForest:
         child = np.where(forest.child < 0, 0, forest.child).astype(np.uint32).ravel()
         self.child = mi.UInt32(padded(child))
         self.prob = mi.Float(padded(forest.probabilities().astype(np.float32).ravel()))
-        self.tree_of_node = mi.UInt32(padded(forest.tree.astype(np.uint32)))
+        self.tree_of_node = forest.tree       # host side: where the recorded sums of a node's leaves are counted
         self.has_energy = mi.Bool(padded(forest.totals() > 0))
-        dr.eval(self.child, self.prob, self.tree_of_node, self.has_energy)
+        dr.eval(self.child, self.prob, self.has_energy)
         self.n_cells = 4 ** jump_levels
         self.cell_alias = None
         if jump_levels > 0:
@@ -325,7 +325,7 @@ class DeviceForest:
         cells = 0
         if self.jump_levels:
             cells = self.n_trees * self.n_cells * (4 + (alias_rows.SLOT_BYTES if self.cell_alias is not None else 0))
-        return 4 * (2 * 4 * self.n_nodes + self.n_nodes) + self.n_trees + cells
+        return 4 * 2 * 4 * self.n_nodes + self.n_trees + cells
 
     # ----------------------------------------------------------------------------------------- device code
     @dr.syntax

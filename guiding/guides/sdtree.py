@@ -16,8 +16,11 @@ including Russian roulette (RGB, 0 where the path ends), and, for vertices whose
 delta-sampled, the leaf slot of that direction in the recording D-tree and its pdf. Once the path is complete, still
 in the render kernel (:meth:`finish_paths`), it is walked backwards, ``L ← Le_i + w_i·L``, adding
 ``mean_rgb(L_{i+1}) / pdf_i`` (the incident radiance along the sampled direction over its pdf) to the leaf, and one
-to the vertex count of the vertex's D-tree (S-tree leaf). The log takes no device memory; :meth:`update` reads the
-accumulators the kernel filled.
+to its count of vertices: one packet scatter of the float64 (energy, count) pair per vertex, without atomics on the
+CPU (:mod:`~guiding.guides.pass_sums`). Two scatters of single floats (the leaf's energy, the D-tree's count), each a
+loop over the packet's lanes with an atomic per lane, cost twice as much in the render kernel. The log takes no device
+memory; :meth:`update` reads the sums the kernel filled, and counts the vertices of each D-tree (S-tree leaf) from
+those of its leaves.
 """
 
 from __future__ import annotations
@@ -36,8 +39,14 @@ from .bsdf_fraction import LearnedBsdfFraction
 from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest, capacity
 from .grid_cells import GridCells
 from .parameters import PAPER_SPP_UNIT, QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
+from .pass_sums import add_target, pass_sums
 from .stree import STree, iteration_length, stree_locate
 from .vertex_log import NO_RECORD, VertexLog, known_or_found, walk_backward
+
+#: Fewest leaf slots the recorded sums hold (1 MiB of float64 pairs). On the CPU the sums are copied per thread
+#: (``ReduceMode.Expand``), and the render kernel is compiled for the size of the copies: a floor keeps the trees'
+#: growth from recompiling it at every refinement while they have fewer than 2^14 nodes (beyond, once per doubling).
+LEAF_SUMS_MIN_SLOTS = 1 << 16
 
 
 @dataclass
@@ -82,8 +91,7 @@ class _TreeGuide(Guide):
         self._log: VertexLog | None = None               # how the paths of the pass log their vertices
         self._sampling: DeviceForest | None = None
         self._recording: DeviceForest | None = None
-        self._energy_acc = None
-        self._count_acc = None
+        self._leaf_sums = None                           # (energy, vertices) per recording leaf slot (pass_sums)
         self.sanitised = {"dropped_entries": 0}          # bad accumulator entries of the last update (_pull)
 
     def records(self) -> bool:
@@ -245,36 +253,35 @@ class _TreeGuide(Guide):
 
     # ---------------------------------------------------------------------------------------- host side
     def _reset_accumulators(self) -> None:
-        self._energy_acc = dr.zeros(mi.Float, capacity(4 * self._recording.n_nodes))
-        self._count_acc = dr.zeros(mi.Float, capacity(self._recording.n_trees))
-        dr.eval(self._energy_acc, self._count_acc)
+        self._leaf_sums = pass_sums(capacity(max(4 * self._recording.n_nodes, LEAF_SUMS_MIN_SLOTS)))
 
     def _splat(self, entry, L) -> None:
         """One vertex of the backward walk (in the render kernel): ``mean_rgb(L)/pdf`` into its recording D-tree
-        leaf, and one to the vertex count of its D-tree."""
+        leaf, and one to the leaf's count of vertices (a vertex whose estimate is not a finite positive number
+        counts, with nothing added)."""
         slot = entry.target
-        recorded = slot != NO_RECORD
         value = rgb_mean(L) / entry.pdf
-        # An explicit mode: Dr.Jit's default picks Expand or atomics by the accumulators' size, which grows with the
-        # trees, and a change of mode is a new render kernel.
-        mode = dr.ReduceMode.Local
-        dr.scatter_reduce(dr.ReduceOp.Add, self._energy_acc, value, slot, recorded & (value > 0) & dr.isfinite(value),
-                          mode=mode)
-        tree = dr.gather(mi.UInt32, self._recording.tree_of_node, slot // 4, recorded)
-        dr.scatter_reduce(dr.ReduceOp.Add, self._count_acc, mi.Float(1), tree, recorded, mode=mode)
+        add_target(self._leaf_sums, slot, dr.select((value > 0) & dr.isfinite(value), value, 0), slot != NO_RECORD)
         if self._fraction:
             self._fraction.record(entry.tree, rgb_mean(entry.weight * L), entry.score, entry.score != 0)
 
+    def recorded_sums(self) -> tuple[np.ndarray, np.ndarray]:
+        """What the render kernels recorded since the last update, per leaf slot of the recording forest: the sum
+        of the vertices' estimates and their number (float64 NumPy arrays of ``4·n_nodes``)."""
+        sums = self._leaf_sums.numpy()[: 2 * 4 * self._recording.n_nodes].reshape(-1, 2)
+        return sums[:, 0].copy(), sums[:, 1].copy()
+
     def _pull(self) -> tuple[np.ndarray, np.ndarray]:
-        """The recorded leaf energies and vertex counts. Entries that are NaN, ±Inf or negative (a float32 sum
-        that overflowed, or memory corruption) are set to 0 and counted in ``sanitised``: a NaN or infinite energy
-        would make its whole D-tree's probabilities NaN, and an infinite count would split the S-tree to its maximum
-        depth (2^60 leaves)."""
-        energy = self._energy_acc.numpy()[: 4 * self._recording.n_nodes].astype(np.float64)
-        counts = self._count_acc.numpy()[: self._recording.n_trees].astype(np.float64)
-        bad_energy, bad_counts = ~(np.isfinite(energy) & (energy >= 0)), ~(np.isfinite(counts) & (counts >= 0))
-        energy[bad_energy], counts[bad_counts] = 0.0, 0.0
-        self.sanitised = {"dropped_entries": int(bad_energy.sum() + bad_counts.sum())}
+        """The recorded leaf energies, and the vertex count of each D-tree. Entries that are NaN, ±Inf or negative
+        (memory corruption; float64 sums of finite float32 estimates do not overflow) are set to 0 and counted in
+        ``sanitised``: a NaN or infinite energy would make its whole D-tree's probabilities NaN, and an infinite count
+        would split the S-tree to its maximum depth (2^60 leaves)."""
+        energy, visits = self.recorded_sums()
+        bad_energy, bad_visits = ~(np.isfinite(energy) & (energy >= 0)), ~(np.isfinite(visits) & (visits >= 0))
+        energy[bad_energy], visits[bad_visits] = 0.0, 0.0
+        self.sanitised = {"dropped_entries": int(bad_energy.sum() + bad_visits.sum())}
+        counts = np.bincount(np.repeat(self._recording.tree_of_node, 4), weights=visits,
+                             minlength=self._recording.n_trees)
         return energy, counts
 
     def _forest_stats(self, forest: Forest, prefix: str) -> dict:
@@ -288,8 +295,8 @@ class _TreeGuide(Guide):
         for f in {id(self._sampling): self._sampling, id(self._recording): self._recording}.values():
             if f is not None:
                 total += f.nbytes
-        if self._energy_acc is not None:
-            total += 4 * (dr.width(self._energy_acc) + dr.width(self._count_acc))
+        if self._leaf_sums is not None:
+            total += 8 * dr.width(self._leaf_sums)
         return total
 
 

@@ -1,6 +1,7 @@
 """What the stress tests reach inside the SD-tree guides (:mod:`guiding.guides.sdtree`): its cylindrical direction
 map, its forests and its accumulators. (Every import from that module is here, in one place.)"""
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
@@ -115,26 +116,32 @@ def forest_violations(forest) -> list[str]:
 
 
 def hostile_tree(method: str, kind: str) -> tuple:
-    """Two prepared guides of ``method`` with recorded energies and counts: one holding ``HOSTILE_ENTRIES[kind]``
-    in a leaf of tree 0 (as a float32 accumulator holds it: 1e39 is +Inf there), one holding it sanitised."""
+    """Two prepared guides of ``method`` with recorded energies and vertex counts: one holding
+    ``HOSTILE_ENTRIES[kind]`` in a leaf of tree 0, one holding it sanitised."""
     spec = HOSTILE_ENTRIES[kind]
     hostile, expected = tree_guide(method), tree_guide(method)
     slots = recording_forest(hostile).leaf_table()[1]
-    energy = np.zeros(hostile._energy_acc.shape[0], dtype=np.float32)
-    counts = np.zeros(hostile._count_acc.shape[0], dtype=np.float32)
+    energy, visits = (np.zeros(4 * recording_forest(hostile).n_nodes) for _ in range(2))
     if spec:
         energy[slots] = np.random.default_rng(len(kind)).uniform(0.5, 2, len(slots))
-        counts[: recording_forest(hostile).n_trees] = 100
-    bad_energy, bad_counts = energy.copy(), counts.copy()
-    with np.errstate(over="ignore"):
-        bad_energy[slots[5]] = np.float32(spec.get("sum", energy[slots[5]]))
-        bad_counts[0] = np.float32(spec.get("count", counts[0]))
+        visits[slots] = 100
+    bad_energy, bad_visits = energy.copy(), visits.copy()
+    bad_energy[slots[5]] = spec.get("sum", energy[slots[5]])
+    bad_visits[slots[0]] = spec.get("count", visits[slots[0]])
     clean_energy = np.where(np.isfinite(bad_energy) & (bad_energy >= 0), bad_energy, 0)
-    clean_counts = np.where(np.isfinite(bad_counts) & (bad_counts >= 0), bad_counts, 0)
-    hostile._energy_acc, hostile._count_acc = mi.Float(bad_energy), mi.Float(bad_counts)
-    expected._energy_acc, expected._count_acc = mi.Float(clean_energy), mi.Float(clean_counts)
-    dropped = int(np.count_nonzero(bad_energy != clean_energy) + np.count_nonzero(bad_counts != clean_counts))
+    clean_visits = np.where(np.isfinite(bad_visits) & (bad_visits >= 0), bad_visits, 0)
+    fill_sums(hostile, bad_energy, bad_visits)
+    fill_sums(expected, clean_energy, clean_visits)
+    dropped = int(np.count_nonzero(bad_energy != clean_energy) + np.count_nonzero(bad_visits != clean_visits))
     return hostile, expected, dropped
+
+
+def fill_sums(guide, energy: np.ndarray, visits: np.ndarray) -> None:
+    """Make ``guide``'s recorded sums ``energy`` and ``visits`` (per leaf slot of its recording forest), as if its
+    render kernels had recorded them."""
+    sums = np.zeros(dr.width(guide._leaf_sums))
+    sums[0: 2 * len(energy): 2], sums[1: 2 * len(visits): 2] = energy, visits
+    guide._leaf_sums = mi.Float64(sums)
 
 
 def chain(depth: int, energy: float, quadrant: int = 3) -> list:

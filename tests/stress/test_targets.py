@@ -50,7 +50,7 @@ def test_sdtree_learning_targets(method, figures):
     guide = tree_guide(method)
     paths = SyntheticPaths.hostile()
     paths.run(guide)      # the backward walk splats as the paths finish
-    counts = np.array(guide._count_acc)
+    counts = guide.recorded_sums()[1]
     recorded_vertices = paths.records()     # every vertex that continues has pdf > 0
     assert counts.sum() == recorded_vertices, f"{counts.sum()} vertices recorded, expected {recorded_vertices}"
     stats = guide.update(getattr(guide, "iteration_end_spp", 8)).stats
