@@ -37,6 +37,10 @@ MAX_STEP = 0.25
 #: Least vertices a tree must have recorded since its last step to step again: c is heavy-tailed (a path that finds
 #: a light through a direction of low density), and the ratio G/H of a few vertices follows their largest c.
 MIN_VERTICES = 1024
+#: Fewest trees the sums hold: on the CPU they are copied per thread (``ReduceMode.Expand``, which makes the packet
+#: scatter of a tree's four floats one), and the render kernel is compiled for the size of the copies; the floor keeps
+#: the S-tree's growth from recompiling it until it has more leaves (64 KiB of sums).
+SUMS_MIN_TREES = 1 << 12
 
 
 class LearnedBsdfFraction:
@@ -54,7 +58,7 @@ class LearnedBsdfFraction:
         """The shares to the device, with ``sums`` (None: cleared): count, G and H per tree, and a fourth float
         that keeps a tree's three in one packet scatter per vertex."""
         self.shares = mi.Float(padded(self.host.astype(np.float32)))
-        table = np.zeros(capacity(4 * len(self.host)), dtype=np.float32)
+        table = np.zeros(capacity(4 * max(len(self.host), SUMS_MIN_TREES)), dtype=np.float32)
         if sums is not None:
             table[: len(sums)] = sums
         self._sums = mi.Float(padded(table))
@@ -70,8 +74,10 @@ class LearnedBsdfFraction:
         at its sampled direction (see the module docstring)."""
         cs = c * s
         usable = active & (c > 0) & dr.isfinite(cs * s)
-        dr.scatter_reduce(dr.ReduceOp.Add, self._sums, mi.Vector4f(1, cs, cs * s, 0), tree, usable,
-                          mode=dr.ReduceMode.Local)
+        # A packet scatter without atomics (Expand) where the CPU backend can copy the sums per thread: in the
+        # other modes the four floats are four loops over the lanes with an atomic per lane.
+        mode = dr.ReduceMode.Expand if dr.width(self._sums) <= dr.expand_threshold() else dr.ReduceMode.Local
+        dr.scatter_reduce(dr.ReduceOp.Add, self._sums, mi.Vector4f(1, cs, cs * s, 0), tree, usable, mode=mode)
 
     # --------------------------------------------------------------------------------------- host side
     def step(self) -> dict:
