@@ -1,8 +1,10 @@
 """Determinism: run-to-run differences of the same seed, on one thread and on the suite's thread count.
 
-On one thread every method is bit-identical from run to run. On two threads the grid guides' float64 atomics have
-so far given identical images (their sums are rounded to float32 Q), while the SD-tree guides' float32 atomics
-(energies splatted per pass) can change images in the last bits; the figures give the largest difference.
+On one thread every method is bit-identical from run to run. On two threads the guides' sums are float64, added
+without atomics into a copy per thread (``ReduceMode.Expand``) and folded after the pass, so only the order in which
+the copies' float32 terms were added differs; that has so far given identical images for every method (the tree
+guides splatted float32 energies with atomics before, which could change images in the last bits). The figures give
+the largest difference.
 """
 
 import drjit as dr
@@ -14,8 +16,8 @@ from guiding.methods import make_guide
 from guiding.render import Budget, render
 from guiding.scenes import load_scene
 
-#: Methods whose determinism is measured: the baseline (no learning), grid guides learning through float64
-#: atomics (SARSA with rejection sampling, MC with hemi_inv) and the SD-tree guides (float32 atomics).
+#: Methods whose determinism is measured: the baseline (no learning), grid guides (SARSA with rejection sampling, MC
+#: with hemi_inv) and the tree guides.
 DETERMINISM_METHODS = ("brdf", "ours", "mc-hemi_inv", "sdtree", "quadtree-grid")
 DETERMINISM_SCALE, DETERMINISM_SPP = 32 / 256, 32
 
@@ -37,8 +39,8 @@ def thread_count():
 @pytest.mark.parametrize("method", DETERMINISM_METHODS)
 def test_same_seed_same_image(method, thread_count, figures):
     """The same seed gives the same image: bit-identical for every method on one thread and for brdf on two; where
-    guides learn through atomics on two threads, the largest difference is measured and must stay below 1e-3 of
-    the difference between two seeds."""
+    guides learn on two threads (per-thread sums, folded in an order that may vary), the largest difference is
+    measured and must stay below 1e-3 of the difference between two seeds."""
     for count in (1, thread_count):
         dr.set_thread_count(count)
         first, second = render_cornell(method, seed=5), render_cornell(method, seed=5)
