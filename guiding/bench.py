@@ -12,8 +12,8 @@ weights), ``[+pdf]`` (the exact mixture density: the full sampler, nothing recor
 rendered, statistics off: the method's own row) and ``[+statistics]`` (its per-pass counters on; the benchmark's
 ``guided_per_ray`` comes from this variant); ``[bsdf paths]`` (the whole bounce computed and recorded, the path
 continued along the BSDF's sample: the guide's work at ``brdf``'s paths; its increment is over the method itself,
-minus what the guided paths themselves cost). Tree guides: ``[no record]`` (recording stops after the warm-up
-passes) and ``[+record]``. The partial stages are a benchmark instrument (``GridParameters.profile_stage``): their
+minus what the guided paths themselves cost). Tree guides: ``[no record]`` (the method's own trees, as they
+are at each pass, sampled by a kernel that records nothing) and ``[+record]``. The partial stages are a benchmark instrument (``GridParameters.profile_stage``): their
 images are not meant to be correct, and they learn their tables only in the warm-up passes.
 """
 
@@ -30,6 +30,7 @@ import numpy as np
 import pandas as pd
 
 from .driver import PassDriver, pass_seed
+from .guides.base import NoPathState, UpdateResult
 
 
 @dataclass
@@ -87,8 +88,8 @@ GRID_STAGES = [("classify", "[classify]", {"profile_stage": "classify"}),
 #: Stages that are not a step of the sequence: their increment is over the method itself (for ``bsdf paths``, minus
 #: what the guided paths themselves cost).
 OUTSIDE_SEQUENCE = {"bsdf paths"}
-#: Tree guides' breakdown: recording off after the warm-up passes, then the guide itself.
-TREE_STAGES = [("no record", "[no record]", "stop"), ("+record", "", None)]
+#: Tree guides' breakdown: the method's trees sampled without recording, then the guide itself.
+TREE_STAGES = [("no record", "[no record]", "view"), ("+record", "", None)]
 
 
 class TraceOnlyIntegrator(mi.SamplingIntegrator):
@@ -123,25 +124,40 @@ class TraceOnlyIntegrator(mi.SamplingIntegrator):
         return mi.Spectrum(hits / self.max_depth), mi.Bool(True), []
 
 
-class _RecordingStops:
-    """A guide that records only in its first ``passes`` passes (the benchmark's tree ``[no record]`` stage)."""
+class _SamplingOnly:
+    """The guide of another integrator, sampled as it stands, recording and learning nothing (the benchmark's tree
+    ``[no record]`` stage): the same trees as the method's own passes at every pass (a guide of its own that stopped
+    recording would keep the coarse trees of the warm-up passes, and the increment of recording would include the
+    cost of the finer trees). Its passes must follow the method's (prepared after it, interleaved after it)."""
 
-    def __init__(self, guide, passes: int):
-        self._guide, self._passes, self._updates = guide, passes, 0
+    def __init__(self, guide):
+        self._guide = guide
 
     def __getattr__(self, name):
         return getattr(self._guide, name)
 
     def records(self) -> bool:
-        return self._guide.records() and self._updates < self._passes
+        return False
 
-    def update(self, spp_done: int):
-        self._updates += 1
-        return self._guide.update(spp_done)
+    def trace_key(self) -> tuple:
+        return ("sampling only", *self._guide.trace_key())
+
+    def prepare(self, scene: mi.Scene) -> None:
+        """Nothing: the method's integrator prepared the guide."""
+
+    def new_paths(self, size: int, max_depth: int):
+        return NoPathState()
+
+    def update_due(self, spp_done: int) -> None:
+        return None
+
+    def update(self, spp_done: int) -> UpdateResult:
+        return UpdateResult({})
 
 
-def breakdown_variants(method: str, warmup: int = 2) -> list[tuple[str, str, object]]:
-    """The breakdown of ``method``: (stage, integrator name, guide or None for the method's own integrator)."""
+def breakdown_variants(method: str, guide) -> list[tuple[str, str, object]]:
+    """The breakdown of ``method`` whose own integrator has ``guide``: (stage, integrator name, guide or None for the
+    method's own integrator)."""
     from .methods import grid_parameters, make_guide
 
     if method == "brdf":
@@ -150,8 +166,8 @@ def breakdown_variants(method: str, warmup: int = 2) -> list[tuple[str, str, obj
     for stage, suffix, overrides in (GRID_STAGES if grid_parameters(method) is not None else TREE_STAGES):
         if overrides is None:
             variants.append((stage, method, None))
-        elif overrides == "stop":
-            variants.append((stage, method + suffix, _RecordingStops(make_guide(method), warmup)))
+        elif overrides == "view":
+            variants.append((stage, method + suffix, _SamplingOnly(guide)))
         else:
             variants.append((stage, method + suffix, make_guide(method, **overrides)))
     return variants
@@ -180,7 +196,7 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
         stages = {}
         for method in dict.fromkeys(["brdf", *methods]):
             integrators[method] = GuidedPathIntegrator(props, guide=make_guide(method))
-            stages[method] = breakdown_variants(method) if breakdown else []
+            stages[method] = breakdown_variants(method, integrators[method].guide) if breakdown else []
             for _, variant, guide in stages[method]:
                 if guide is not None:
                     integrators[variant] = GuidedPathIntegrator(props, guide=guide)

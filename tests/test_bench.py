@@ -5,13 +5,28 @@ import pandas as pd
 import pytest
 
 from guiding.bench import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, PassTiming, _guided_per_ray,
-                           benchmark, target_table)
+                           benchmark, breakdown_variants, interleaved_passes, target_table)
 from guiding.bench_child import child_failure
 from guiding.cpu_profile import parse_report, profile_table, table_access_share
 from guiding.errors import GuidingError
 from guiding.kernel_size import kernel_table, parse_disassembly
 from guiding.methods import make_guide
 from guiding.scenes import load_scene
+
+
+def test_tree_breakdown_samples_the_methods_own_trees():
+    """The trees' ``[no record]`` stage samples the method's trees as they are at each of its passes (not trees of
+    its own that stopped learning, coarser than the method's), and records and updates nothing itself."""
+    from guiding.integrator import GuidedPathIntegrator
+
+    scene = load_scene("cornell-box", 1 / 16)
+    method = GuidedPathIntegrator(guide=make_guide("quadtree-grid"))
+    [(_, name, view)] = [v for v in breakdown_variants("quadtree-grid", method.guide) if v[2] is not None]
+    integrators = {"quadtree-grid": method, name: GuidedPathIntegrator(guide=view)}
+    interleaved_passes(scene, integrators, passes=2, pass_spp=2, warmup=1)
+    assert not view.records() and view._sampling is method.guide._sampling
+    # The method's trees grew after each of its passes, from its own recording alone.
+    assert method.guide.stats()["dtree_nodes_total"] > 4 * method.guide.stats()["dtree_trees"]
 
 
 def test_breakdown_table_shape():
