@@ -13,8 +13,9 @@ rendered, statistics off: the method's own row) and ``[+statistics]`` (its per-p
 ``guided_per_ray`` comes from this variant); ``[bsdf paths]`` (the whole bounce computed and recorded, the path
 continued along the BSDF's sample: the guide's work at ``brdf``'s paths; its increment is over the method itself,
 minus what the guided paths themselves cost). Tree guides: ``[no record]`` (the method's own trees, as they
-are at each pass, sampled by a kernel that records nothing) and ``[+record]``. The partial stages are a benchmark instrument (``GridParameters.profile_stage``): their
-images are not meant to be correct, and they learn their tables only in the warm-up passes.
+are at each pass, sampled by a kernel that records nothing) and ``[+record]``. The partial stages are a benchmark
+instrument (``GridParameters.profile_stage``): their images are not meant to be correct, and they learn their
+tables only in the warm-up passes.
 """
 
 from __future__ import annotations

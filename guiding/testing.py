@@ -229,8 +229,7 @@ def sphere_domain(res: int, margin: float = 1e-3):
     ``margin`` of a cell inside their cell. Mitsuba's trapezoid rule puts a cell's end nodes 1e-4 of a step (3e-7
     rad at ``res`` 64) inside it; a direction made of such a node came back on the other side of the edge at some
     edges (φ = −π/2, in float32), and a density with a jump there (a D-tree's leaf edges, which fall on the
-    histogram's) was integrated with the neighbour's value: the guide's delta-mixture test rejected 5 of 12 seeds
-    of the chi-square test before this, p ≈ 0 with 4 M samples."""
+    histogram's) was integrated with the neighbour's value, which the test reads as the sampler's error."""
     from mitsuba.chi2 import SphericalDomain
 
     class CellInterior(SphericalDomain):

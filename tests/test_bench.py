@@ -23,9 +23,12 @@ def test_tree_breakdown_samples_the_methods_own_trees():
     method = GuidedPathIntegrator(guide=make_guide("quadtree-grid"))
     [(_, name, view)] = [v for v in breakdown_variants("quadtree-grid", method.guide) if v[2] is not None]
     integrators = {"quadtree-grid": method, name: GuidedPathIntegrator(guide=view)}
+    updates, update = [], method.guide.update
+    method.guide.update = lambda spp_done: updates.append(spp_done) or update(spp_done)
     interleaved_passes(scene, integrators, passes=2, pass_spp=2, warmup=1)
     assert not view.records() and view._sampling is method.guide._sampling
-    # The method's trees grew after each of its passes, from its own recording alone.
+    # The trees grew after each of the method's own passes (the quadtree grid updates after every pass), and only then.
+    assert updates == [2, 4, 6]
     assert method.guide.stats()["dtree_nodes_total"] > 4 * method.guide.stats()["dtree_trees"]
 
 

@@ -545,6 +545,26 @@ def test_trained_dtrees_point_at_the_light(cornell, method):
     assert np.mean(near) > 0.35 and np.min(near) > 0.067, near
 
 
+def test_dtree_vertex_counts_are_their_leaves_counts(cornell):
+    """The vertex count of each D-tree (what splits the S-tree) is the sum of the counts its leaves recorded: read
+    through each leaf's own tree (Forest.leaf_table), every vertex of the pass lands in a leaf, and no count is given
+    to another tree."""
+    guide = SDTreeGuide(base_spp=8)
+    integrator = GuidedPathIntegrator(guide=guide)
+    integrator.prepare(cornell)
+    for spp_done in (8, 16, 24):       # iterations (0, 8) and (8, 24) refine the S-tree; no budget: it goes on
+        integrator.render_pass(cornell, cornell.sensors()[0], seed=spp_done, spp=8)
+        guide.update(spp_done)
+    integrator.render_pass(cornell, cornell.sensors()[0], seed=7, spp=4)
+    host = guide._recording_host
+    assert host.n_trees > 8
+    _, visits = guide.recorded_sums()
+    tree, slot = host.leaf_table()[:2]
+    assert visits.sum() > 1000 and visits[slot].sum() == visits.sum()
+    _, counts = guide._pull()
+    np.testing.assert_array_equal(counts, np.bincount(tree, weights=visits[slot], minlength=host.n_trees))
+
+
 def test_quadtree_grid_records_the_leaf_its_descent_found(cornell):
     """The quadtree grid's sampling and recording D-trees are one, so a guided vertex records the leaf its mixture's
     descent found: the same pass recorded through a lookup of the recording tree (the SD-tree's way) fills the same

@@ -30,6 +30,7 @@ import numpy as np
 
 from .dtree import capacity, padded
 from .parameters import LEARNED_SHARE_RANGE
+from .pass_sums import copied_per_thread
 
 MIN_SHARE, MAX_SHARE = LEARNED_SHARE_RANGE
 #: Most a share moves in one step.
@@ -37,9 +38,9 @@ MAX_STEP = 0.25
 #: Least vertices a tree must have recorded since its last step to step again: c is heavy-tailed (a path that finds
 #: a light through a direction of low density), and the ratio G/H of a few vertices follows their largest c.
 MIN_VERTICES = 1024
-#: Fewest trees the sums hold: on the CPU they are copied per thread (``ReduceMode.Expand``, which makes the packet
-#: scatter of a tree's four floats one), and the render kernel is compiled for the size of the copies; the floor keeps
-#: the S-tree's growth from recompiling it until it has more leaves (64 KiB of sums).
+#: Fewest trees the sums hold (64 KiB): they are copied per thread
+#: (:func:`~guiding.guides.pass_sums.copied_per_thread`), and the floor keeps the S-tree's growth from recompiling the
+#: render kernel until it has more leaves.
 SUMS_MIN_TREES = 1 << 12
 
 
@@ -74,10 +75,8 @@ class LearnedBsdfFraction:
         at its sampled direction (see the module docstring)."""
         cs = c * s
         usable = active & (c > 0) & dr.isfinite(cs * s)
-        # A packet scatter without atomics (Expand) where the CPU backend can copy the sums per thread: in the
-        # other modes the four floats are four loops over the lanes with an atomic per lane.
-        mode = dr.ReduceMode.Expand if dr.width(self._sums) <= dr.expand_threshold() else dr.ReduceMode.Local
-        dr.scatter_reduce(dr.ReduceOp.Add, self._sums, mi.Vector4f(1, cs, cs * s, 0), tree, usable, mode=mode)
+        dr.scatter_reduce(dr.ReduceOp.Add, self._sums, mi.Vector4f(1, cs, cs * s, 0), tree, usable,
+                          mode=copied_per_thread(self._sums))
 
     # --------------------------------------------------------------------------------------- host side
     def step(self) -> dict:

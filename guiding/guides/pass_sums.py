@@ -25,8 +25,16 @@ def pass_sums(entries: int) -> mi.Float64:
 def add_target(sums: mi.Float64, index: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:
     """Add ``target`` to entry ``index`` of ``sums``, and one to its count: one packet scatter of the pair (two
     scatters cost twice the cache misses, and on the CPU two loops over the lanes)."""
-    mode = dr.ReduceMode.Expand if dr.width(sums) <= dr.expand_threshold() else dr.ReduceMode.Auto
-    dr.scatter_reduce(dr.ReduceOp.Add, sums, _pair_type(sums)(mi.Float64(target), 1), index, active, mode=mode)
+    dr.scatter_reduce(dr.ReduceOp.Add, sums, _pair_type(sums)(mi.Float64(target), 1), index, active,
+                      mode=copied_per_thread(sums))
+
+
+def copied_per_thread(sums) -> dr.ReduceMode:
+    """How a kernel adds into ``sums``: ``Expand`` (a copy per CPU thread, added into without atomics, and a
+    scatter of adjacent values is one packet write) up to ``dr.expand_threshold()`` entries; beyond, ``Local`` (on
+    the CPU a loop over the packet's lanes with an atomic per lane and per value). Expand compiles the kernel for the
+    size of the copies: a table that grows recompiles it at each new size. Other backends treat Expand as Auto."""
+    return dr.ReduceMode.Expand if dr.width(sums) <= dr.expand_threshold() else dr.ReduceMode.Local
 
 
 def entry_sums(sums: mi.Float64, index: mi.UInt32) -> tuple[mi.Float64, mi.Float64]:

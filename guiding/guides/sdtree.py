@@ -17,10 +17,9 @@ delta-sampled, the leaf slot of that direction in the recording D-tree and its p
 in the render kernel (:meth:`finish_paths`), it is walked backwards, ``L ← Le_i + w_i·L``, adding
 ``mean_rgb(L_{i+1}) / pdf_i`` (the incident radiance along the sampled direction over its pdf) to the leaf, and one
 to its count of vertices: one packet scatter of the float64 (energy, count) pair per vertex, without atomics on the
-CPU (:mod:`~guiding.guides.pass_sums`). Two scatters of single floats (the leaf's energy, the D-tree's count), each a
-loop over the packet's lanes with an atomic per lane, cost twice as much in the render kernel. The log takes no device
-memory; :meth:`update` reads the sums the kernel filled, and counts the vertices of each D-tree (S-tree leaf) from
-those of its leaves.
+CPU (:mod:`~guiding.guides.pass_sums`), not a scatter per value, each a loop over the packet's lanes with an atomic
+per lane. The log takes no device memory; :meth:`update` reads the sums the kernel filled, and counts the vertices
+of each D-tree (S-tree leaf) from those of its leaves.
 """
 
 from __future__ import annotations
@@ -43,9 +42,9 @@ from .pass_sums import add_target, pass_sums
 from .stree import STree, iteration_length, stree_locate
 from .vertex_log import NO_RECORD, VertexLog, known_or_found, walk_backward
 
-#: Fewest leaf slots the recorded sums hold (1 MiB of float64 pairs). On the CPU the sums are copied per thread
-#: (``ReduceMode.Expand``), and the render kernel is compiled for the size of the copies: a floor keeps the trees'
-#: growth from recompiling it at every refinement while they have fewer than 2^14 nodes (beyond, once per doubling).
+#: Fewest leaf slots the recorded sums hold (1 MiB of float64 pairs): they are copied per thread
+#: (:func:`~guiding.guides.pass_sums.copied_per_thread`), and the floor keeps the trees' growth from recompiling the
+#: render kernel at every refinement while they have fewer than 2^14 nodes (beyond, once per doubling).
 LEAF_SUMS_MIN_SLOTS = 1 << 16
 
 
