@@ -41,7 +41,7 @@ from . import alias_rows
 from .grid_cells import GridCells
 from .grid_refinement import BinRefinement
 from .parameters import MIN_EXPLORATION
-from .pass_sums import add_target, entry_sums, pass_sums
+from .pass_sums import add_target, entry_sums, footprint, pass_sums, planned_footprint
 
 #: Added to Q before normalising, so that no bin has zero probability (method.md §4).
 Q_OFFSET = 1e-6
@@ -456,7 +456,7 @@ class RadianceRecord:
         of the visited pairs (``hemi_alias``, at most 2·D² slots per pair: the bins a row holds, ``_row_layout``)
         come on top: they grow with the visits, and :meth:`_update_memo` checks them against ``row_memory_limit``."""
         C, B, NB = spatial_resolution ** 3, 2 * directional_resolution ** 2, 6 * normal_resolution ** 2
-        total = C * B * (8 + 8 + 8 + 8 + 4 + 4)                # totals, pass sums, Q, policy
+        total = C * B * (8 + 8 + 4 + 4) + planned_footprint(C * B)     # totals, Q, policy; pass sums
         if needs_cell_alias:
             total += alias_rows.SLOT_BYTES * C * B               # the cells' alias tables
         if needs_memo or needs_hemi_alias or needs_in_bin or needs_value:
@@ -468,10 +468,11 @@ class RadianceRecord:
         return total
 
     def memory_bytes(self) -> int:
-        arrays = [self.acc_sum, self.acc_count, self.pass_targets, self.q, self.policy, self.cell_alias]
+        arrays = [self.acc_sum, self.acc_count, self.q, self.policy, self.cell_alias]
         if self.needs_pairs:
             arrays += [self.visited, self.pair_memo, self.value, self.hemi_alias, self.row_bins, self.row_slots,
                        None if self.reach_bins is self.row_bins else self.reach_bins,
                        self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_scale, self.in_bin_misses]
         refined = self.refinement.memory_bytes() if self.refinement else 0
-        return refined + sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays if a is not None)
+        return refined + footprint(self.pass_targets) + sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4)
+                                                            for a in arrays if a is not None)

@@ -31,7 +31,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import alias_rows
-from .pass_sums import add_target, entry_sums, pass_sums
+from .pass_sums import add_target, entry_sums, footprint, pass_sums, planned_footprint
 
 #: Slot of an entry that is not refined.
 UNREFINED = 0xFFFFFFFF
@@ -95,12 +95,13 @@ class BinRefinement:
         """Bytes of the tables of a refinement built with these arguments (all allocated up front)."""
         sub = resolution * resolution
         return (4 * entries + 2 * 4 * ((entries + 31) // 32) + 4 * capacity
-                + capacity * sub * (8 + 8 + 16 + 4 + alias_rows.SLOT_BYTES))
+                + capacity * sub * (8 + 8 + 4 + alias_rows.SLOT_BYTES) + planned_footprint(capacity * sub))
 
     def memory_bytes(self) -> int:
         arrays = [self.slot, self.sampling_mask, self.learning_mask, self.entry_of, self.acc_sum, self.acc_count,
-                  self.pass_targets, self.probability, self.alias]
-        return sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4) for a in arrays)
+                  self.probability, self.alias]
+        return footprint(self.pass_targets) + sum(dr.width(a) * (8 if isinstance(a, mi.Float64) else 4)
+                                                  for a in arrays)
 
     # ------------------------------------------------------------------ device side
     @staticmethod

@@ -38,7 +38,7 @@ from .bsdf_fraction import LearnedBsdfFraction
 from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest, capacity
 from .grid_cells import GridCells
 from .parameters import PAPER_SPP_UNIT, QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
-from .pass_sums import add_target, pass_sums
+from .pass_sums import add_target, footprint, pass_sums
 from .stree import STree, iteration_length, stree_locate
 from .vertex_log import NO_RECORD, VertexLog, known_or_found, walk_backward
 
@@ -295,7 +295,7 @@ class _TreeGuide(Guide):
             if f is not None:
                 total += f.nbytes
         if self._leaf_sums is not None:
-            total += 8 * dr.width(self._leaf_sums)
+            total += footprint(self._leaf_sums)
         return total
 
 
