@@ -151,6 +151,32 @@ def test_dtree_density_matches_host_lookup_everywhere(jump_levels):
         np.testing.assert_allclose(leaf_pdf * side[m] ** 2, energy[m] / energy[m].sum(), rtol=1e-9, atol=1e-15)
 
 
+def test_overlay_names_the_recording_leaf_of_every_point():
+    """`Forest.overlay` and `DeviceForest.slot_at`: from the sampling leaf a point lies in, its recording leaf is the
+    one a lookup of the recording tree finds, where the recording tree is the same, coarser (merged) or finer (one
+    level or several) than the sampling tree; at random points and on the leaves' edges at every level."""
+    rng = np.random.default_rng(17)
+    sampling = nested_forest([deep_tree(rng, 12), random_tree(rng, 5, 0.5, zeros=0.3), [1, 0, 0, 2]])
+    sampling.deposit(rng.lognormal(0, 2, 4 * sampling.n_nodes) ** 2)
+    recording = sampling.rebuild(np.arange(3), SPLIT_REFINE, rho=0.01, max_depth=14, keep_energy=False)
+    assert recording.n_nodes != sampling.n_nodes
+    overlay = sampling.overlay(recording)
+    n = 40_000
+    uv = rng.random((n, 2)).astype(np.float32)
+    levels = rng.integers(1, 15, n)
+    edges = (np.floor(uv * 2.0 ** levels[:, None]) / 2.0 ** levels[:, None]).astype(np.float32)
+    uv[n // 2:] = edges[n // 2:]
+    trees = mi.UInt32(rng.integers(0, 3, n).astype(np.uint32))
+    points = mi.Point2f(uv[:, 0], uv[:, 1])
+    sampling_slot, _ = DeviceForest(sampling).lookup_uv(trees, points)
+    device = DeviceForest(recording, densities=False)
+    found = device.slot_at(dr.gather(mi.UInt32, mi.UInt32(overlay), sampling_slot), points)
+    expected, _ = device.lookup_uv(trees, points, with_pdf=False)
+    deeper = (overlay[sampling_slot.numpy()] & 0x80000000) == 0
+    assert 0.05 < deeper.mean() < 0.95          # both kinds of entry are met
+    np.testing.assert_array_equal(found.numpy(), expected.numpy())
+
+
 @pytest.mark.parametrize("levels", [1, 3])
 def test_cells_hold_where_a_descent_stands_and_their_leaves_share(levels):
     """`Forest.cells` against the leaves themselves: a cell's probability is the energy share of the leaves over it,
@@ -587,6 +613,31 @@ def test_quadtree_grid_records_the_leaf_its_descent_found(cornell):
     assert np.count_nonzero(counts != looked_up_counts) <= 1e-3 * np.count_nonzero(counts)
     assert np.count_nonzero(handed != looked_up) <= 1e-3 * np.count_nonzero(handed)
     assert handed.sum() == pytest.approx(looked_up.sum(), rel=1e-4)
+
+
+def test_sdtree_records_through_the_overlay_what_a_lookup_records(cornell):
+    """The SD-tree finds a vertex's recording leaf from the sampling leaf its mixture's descent found
+    (`Forest.overlay`): a pass records the same leaves with the same energy as the same pass recorded through a
+    lookup of the recording tree (but for directions within rounding of a leaf's edge)."""
+    guide = SDTreeGuide(base_spp=8)
+    integrator = GuidedPathIntegrator(guide=guide)
+    integrator.prepare(cornell)
+    sensor = cornell.sensors()[0]
+    for spp_done in (8, 16, 24):       # iterations (0, 8) and (8, 24); no budget: it goes on recording
+        integrator.render_pass(cornell, sensor, seed=spp_done, spp=8)
+        guide.update(spp_done)
+    assert guide.records() and guide._recording_host.n_nodes != guide._sampling_host.n_nodes
+    recorded = []
+    for overlay in (guide._overlay, None):
+        guide._overlay = overlay
+        guide._reset_accumulators()
+        integrator.render_pass(cornell, sensor, seed=5, spp=4)
+        recorded.append(guide.recorded_sums())
+    (overlaid, counts), (looked_up, looked_up_counts) = recorded
+    assert counts.sum() > 1000 and counts.sum() == looked_up_counts.sum()
+    assert np.count_nonzero(counts != looked_up_counts) <= 1e-3 * np.count_nonzero(counts)
+    assert np.count_nonzero(overlaid != looked_up) <= 1e-3 * np.count_nonzero(overlaid)
+    assert overlaid.sum() == pytest.approx(looked_up.sum(), rel=1e-4)
 
 
 def test_progressive_render_statistics_and_one_kernel(cornell):

@@ -38,6 +38,9 @@ from .alias_rows import ONE_MINUS_EPS     # samples and coordinates are clamped 
 EDGE_OFFSET = 2.0 ** -22
 #: A cell's entry with this bit is a leaf slot (the descent ended within the first levels), without it a node.
 LEAF_BIT = 0x80000000
+#: An :meth:`Forest.overlay` entry without LEAF_BIT: the node in its low bits, the level of its square (side
+#: 2^-level) from this bit on.
+LEVEL_SHIFT = 26
 INV_4PI = 1.0 / (4.0 * math.pi)
 
 SPLIT_COPY = "copy"        # keep the structure as it is
@@ -122,6 +125,31 @@ class Forest:
         half = side[nodes] * 0.5
         corner = origin[nodes] + half[:, None] * q_off[quads]
         return (self.tree[nodes], 4 * nodes + quads, corner[:, 0], corner[:, 1], half, self.energy[nodes, quads])
+
+    def overlay(self, other: "Forest") -> np.ndarray | None:
+        """Where each leaf quadrant of this forest lies in ``other``, a forest of the same trees and squares in
+        another structure (the SD-tree's sampling and recording trees): per slot ``4·node + q`` (uint32; inner
+        quadrants' entries mean nothing), ``LEAF_BIT | slot`` of ``other``'s leaf holding the quadrant (the same
+        square, or a larger one where ``other`` is coarser), or, where ``other`` divides it further, the node of
+        ``other`` whose square it is, with the square's level (:data:`LEVEL_SHIFT`). None where ``other`` has too
+        many nodes for the entries' bits."""
+        if other.n_nodes >= 1 << LEVEL_SHIFT or self.max_depth() > 31:
+            return None
+        entry = np.zeros((self.n_nodes, 4), dtype=np.uint32)
+        mine = theirs = np.arange(self.n_trees)
+        held = np.full(self.n_trees, -1, dtype=np.int64)     # other's leaf entry holding the whole node, or -1
+        quadrant = np.arange(4)
+        while len(mine):
+            coarser = held[:, None] >= 0
+            their_child = np.where(coarser, -1, other.child[np.maximum(theirs, 0)])
+            their_leaf = np.where(coarser, held[:, None], LEAF_BIT | (4 * theirs[:, None] + quadrant))
+            level = self.depth[mine].astype(np.int64)[:, None]
+            entry[mine] = np.where(their_child >= 0, their_child | (level << LEVEL_SHIFT), their_leaf)
+            rows, quads = np.nonzero(self.child[mine] >= 0)
+            mine = self.child[mine[rows], quads]
+            theirs = their_child[rows, quads]
+            held = np.where(theirs >= 0, -1, their_leaf[rows, quads])
+        return entry.ravel()
 
     # -------------------------------------------------------------------------------------------- updates
     def propagate(self) -> None:
@@ -329,8 +357,9 @@ class DeviceForest:
 
     # ----------------------------------------------------------------------------------------- device code
     @dr.syntax
-    def descend(self, tree, point, draw, active=True, with_pdf=True):
-        """Descend tree ``tree`` to a leaf: (its slot ``4·node + q``, the point drawn, the density there).
+    def descend(self, tree, point, draw, active=True, with_pdf=True, start=None):
+        """Descend tree ``tree`` to a leaf: (its slot ``4·node + q``, the point drawn, the density there, and the
+        lane's point: the one drawn, or the one looked up).
 
         Lanes with ``draw`` sample: ``point`` is a 2D sample, the cell below the first ``jump_levels`` levels is drawn
         with its probability (:meth:`_start`), then quadrants with theirs (first the ``u`` half, then the ``v`` half,
@@ -339,9 +368,13 @@ class DeviceForest:
         contains it, and the point returned means nothing. ``draw`` is a Python bool (every lane alike; only that
         half of the loop is traced) or a mask, with which the mixture sampler draws from the tree in some lanes and
         finds the density of the BSDF's direction in the others in one descent instead of two. ``with_pdf=False``
-        (lookups only) skips the probabilities."""
+        (lookups only) skips the probabilities. ``start`` (lookups only): nodes to descend from instead of the trees'
+        roots, ``point`` the place within a start node's square (``tree`` is not read)."""
         child, prob = self.child, self.prob
-        if dr.hint(self.jump_levels > 0, mode="scalar"):
+        if dr.hint(start is not None, mode="scalar"):
+            node, slot, x, origin, pdf = mi.UInt32(start), mi.UInt32(0), mi.Point2f(point), mi.Point2f(0), mi.Float(1)
+            go = mi.Bool(active)
+        elif dr.hint(self.jump_levels > 0, mode="scalar"):
             node, slot, x, origin, pdf = self._start(tree, point, draw, active, with_pdf)
             go = mi.Bool(active) & (node != 0)
         else:
@@ -391,7 +424,7 @@ class DeviceForest:
         # it (whose φ is rounded in sincos) lies in the leaf too, and none is the pole u = 0, whose φ is lost.
         margin = dr.minimum(size * 0.25, EDGE_OFFSET)
         uv = dr.clip(origin + size * x, origin + margin, origin + size - margin)
-        return slot, uv, pdf
+        return slot, uv, pdf, _per_lane(draw, uv, point)
 
     def _start(self, tree, point, draw, active, with_pdf):
         """Where the descent of :meth:`descend` stands after ``jump_levels`` levels, from its cell's tables: the
@@ -422,12 +455,12 @@ class DeviceForest:
 
     def sample_uv(self, tree, sample, active=True):
         """Descend tree ``tree`` with the 2D ``sample``: a point of the square and its density there."""
-        _, uv, pdf = self.descend(tree, sample, True, active)
+        _, uv, pdf, _ = self.descend(tree, sample, True, active)
         return uv, pdf
 
     def lookup_uv(self, tree, uv, active=True, with_pdf=True):
         """Leaf slot (``4·node + q``) containing ``uv`` in tree ``tree``, and the density there."""
-        slot, _, pdf = self.descend(tree, uv, False, active, with_pdf)
+        slot, _, pdf, _ = self.descend(tree, uv, False, active, with_pdf)
         return slot, pdf
 
     def sample_dir(self, tree, sample, active=True):
@@ -447,6 +480,21 @@ class DeviceForest:
     def sample_or_pdf_dir(self, tree, sample, d, draw, active=True):
         """In one descent of tree ``tree``: lanes with ``draw`` draw a world direction with the 2D ``sample``, the
         others look world direction ``d`` up; returns (the direction drawn, meaningless where not ``draw``; the
-        solid-angle density of the lane's direction; the slot of the leaf it lies in)."""
-        slot, uv, pdf = self.descend(tree, dr.select(draw, mi.Point2f(sample), dir_to_uv(d)), draw, active)
-        return uv_to_dir(uv), pdf * INV_4PI, slot
+        solid-angle density of the lane's direction; the slot of the leaf it lies in; its point in the square)."""
+        slot, uv, pdf, point = self.descend(tree, dr.select(draw, mi.Point2f(sample), dir_to_uv(d)), draw, active)
+        return uv_to_dir(uv), pdf * INV_4PI, slot, point
+
+    @dr.syntax
+    def slot_at(self, entry, point, active=True):
+        """The leaf slot of this forest that holds ``point`` (in the tree's square), from the :meth:`Forest.overlay`
+        entry of another forest's leaf that holds it: the slot the entry names, or the leaf a descent from the node it
+        names finds (a branch: packets whose every lane's entry names a leaf skip it)."""
+        slot = entry & (LEAF_BIT - 1)
+        deeper = mi.Bool(active) & ((entry & LEAF_BIT) == 0)
+        if deeper:
+            # The point's place in the node's square: exact in float32 (a product by a power of two, its fraction).
+            scaled = point * dr.reinterpret_array(mi.Float, (((entry >> LEVEL_SHIFT) & 31) + 127) << 23)
+            below, _, _, _ = self.descend(None, scaled - dr.floor(scaled), False, deeper, with_pdf=False,
+                                          start=entry & ((1 << LEVEL_SHIFT) - 1))
+            slot = dr.select(deeper, below, slot)
+        return slot

@@ -35,7 +35,7 @@ import numpy as np
 
 from .base import Guide, NoPathState, UpdateResult, rgb_mean
 from .bsdf_fraction import LearnedBsdfFraction
-from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest, capacity
+from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest, capacity, padded
 from .grid_cells import GridCells
 from .parameters import PAPER_SPP_UNIT, QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
 from .pass_sums import add_target, footprint, pass_sums
@@ -50,13 +50,16 @@ LEAF_SUMS_MIN_SLOTS = 1 << 16
 
 @dataclass
 class TreeVertex:
-    """What :meth:`_TreeGuide.locate` hands to ``sample`` and ``record`` at a vertex: its D-tree, and the recording
-    leaf slot of the direction ``sample`` took, where the descent that drew it (or found its density) already found
-    the leaf, that is, where the sampling and the recording D-trees are the same (the quadtree grid's); NO_RECORD or
-    None elsewhere (``record`` descends the recording tree there)."""
+    """What :meth:`_TreeGuide.locate` hands to ``sample`` and ``record`` at a vertex: its D-tree, and the leaf of
+    the sampling D-tree that the direction ``sample`` took lies in, found by the descent that drew it (or found its
+    density): its slot (NO_RECORD or None where the mixture was not sampled) and the direction's point in the D-tree's
+    square. ``record`` finds the recording leaf from there: the same slot where the sampling and the recording
+    D-trees are one (the quadtree grid's), the recording trees' overlay of the leaf elsewhere (the SD-tree's), a
+    descent of the recording tree where neither applies."""
 
     tree: mi.UInt32
     slot: mi.UInt32 = None
+    point: mi.Point2f = None
     #: ∂ log m/∂α at the direction the mixture drew ((p_bsdf − p_tree)/m; 1/α at a delta lobe's), 0 where the
     #: mixture was not sampled: what the learned BSDF share needs of the vertex (:mod:`~guiding.guides.bsdf_fraction`;
     #: None unless it is learned).
@@ -90,6 +93,7 @@ class _TreeGuide(Guide):
         self._log: VertexLog | None = None               # how the paths of the pass log their vertices
         self._sampling: DeviceForest | None = None
         self._recording: DeviceForest | None = None
+        self._overlay = None      # where each sampling leaf lies in the recording trees (Forest.overlay), if apart
         self._leaf_sums = None                           # (energy, vertices) per recording leaf slot (pass_sums)
         self.sanitised = {"dropped_entries": 0}          # bad accumulator entries of the last update (_pull)
 
@@ -175,12 +179,12 @@ class _TreeGuide(Guide):
         guidable = self.guides(bsdf, active)
         tree = None if vertex is None else vertex.tree
         if guidable:
-            bs, weight, slot, score = self._mixture_sample(si, bsdf, bsdf_ctx, s1, s2, guidable, tree)
+            bs, weight, slot, point, score = self._mixture_sample(si, bsdf, bsdf_ctx, s1, s2, guidable, tree)
         else:
             bs, weight = bsdf.sample(bsdf_ctx, si, s1, s2, active & ~guidable)
-            slot, score = mi.UInt32(NO_RECORD), mi.Float(0)
-        if dr.hint(vertex is not None and self._recording is self._sampling, mode="scalar"):
-            vertex.slot = slot
+            slot, point, score = mi.UInt32(NO_RECORD), mi.Point2f(0), mi.Float(0)
+        if dr.hint(vertex is not None and self.records(), mode="scalar"):
+            vertex.slot, vertex.point = slot, point
         if dr.hint(vertex is not None and self._fraction is not None, mode="scalar"):
             vertex.score = score
         if dr.hint(vertex is not None and self._splat_jittered() and self.records(), mode="scalar"):
@@ -189,9 +193,9 @@ class _TreeGuide(Guide):
 
     def _mixture_sample(self, si, bsdf, bsdf_ctx, s1, s2, active, tree=None):
         """One sample of the mixture of BSDF sampling and the vertex's D-tree ``tree`` (None: located here) for the
-        samples ``s1``, ``s2`` (BSDF sampling alone where the D-tree holds no energy): the sample, its weight, and
-        the leaf slot of its direction in the sampling D-tree (NO_RECORD where the tree was not descended), and its
-        score (:class:`TreeVertex`)."""
+        samples ``s1``, ``s2`` (BSDF sampling alone where the D-tree holds no energy): the sample, its weight, the
+        leaf slot of its direction in the sampling D-tree (NO_RECORD where the tree was not descended) and its point
+        in the tree's square, and its score (:class:`TreeVertex`)."""
         tree = self._locate(si.p, active) if tree is None else tree
         guided = self.guided_mask(tree, bsdf, active)
         share = self._share(tree, guided)
@@ -206,7 +210,7 @@ class _TreeGuide(Guide):
         # BSDF's direction in the others. The density of a direction the tree drew is the one its descent found:
         # looking the (rounded) direction up again could land in a neighbouring leaf of side ~1e-6 with a very
         # different density.
-        d_tree, p_tree, slot = self._sampling.sample_or_pdf_dir(tree, s2, bsdf_dir, use_tree, guided)
+        d_tree, p_tree, slot, point = self._sampling.sample_or_pdf_dir(tree, s2, bsdf_dir, use_tree, guided)
         wo_world = dr.select(use_tree, d_tree, bsdf_dir)
         wo = si.to_local(wo_world)
         value, p_bsdf = bsdf.eval_pdf(bsdf_ctx, si, wo, guided)
@@ -220,7 +224,7 @@ class _TreeGuide(Guide):
         bs.sampled_component = dr.select(use_tree, mi.UInt32(0), bs.sampled_component)
         weight = dr.select(delta, bsdf_weight / share, dr.select(guided, mix_weight, bsdf_weight))
         score = dr.select(delta, 1 / share, dr.select(guided & (p_mix > 0), (p_bsdf - p_tree) / p_mix, 0))
-        return bs, weight, dr.select(guided, slot, NO_RECORD), score
+        return bs, weight, dr.select(guided, slot, NO_RECORD), point, score
 
     def record(self, state, si, emitted, bs, weight, continues, active, vertex=None):
         # The direction sampled here was traced: record it (delta directions carry no density).
@@ -228,9 +232,7 @@ class _TreeGuide(Guide):
                   & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
         tree = self._locate(si.p, traced) if vertex is None else vertex.tree
         splat_tree = self._splat_tree(si, vertex, tree, traced)
-        # The recording leaf: the one the mixture's descent found where the trees are one, a descent of the
-        # recording tree elsewhere.
-        slot = known_or_found(None if vertex is None else vertex.slot, traced,
+        slot = known_or_found(self._recording_slot(vertex, traced), traced,
                               lambda lanes: self._recording.slot_of_dir(splat_tree, si.to_world(bs.wo), lanes))
         learned = {}
         if self._fraction:
@@ -242,6 +244,19 @@ class _TreeGuide(Guide):
     def _splat_jittered(self) -> bool:
         """Whether vertices splat at a jittered position (the SD-tree's stochastic spatial filter)."""
         return False
+
+    def _recording_slot(self, vertex, active) -> mi.UInt32 | None:
+        """The recording leaf of the direction sampled at ``vertex``, from the sampling leaf it lies in
+        (:class:`TreeVertex`; NO_RECORD where sampling found none); None where it cannot be told from there."""
+        if vertex is None or vertex.slot is None or self._splat_jittered():
+            return None
+        if self._recording is self._sampling:
+            return vertex.slot
+        if self._overlay is None:
+            return None
+        known = active & (vertex.slot != NO_RECORD)
+        entry = dr.gather(mi.UInt32, self._overlay, vertex.slot, known)
+        return dr.select(known, self._recording.slot_at(entry, vertex.point, known), NO_RECORD)
 
     def _splat_tree(self, si, vertex, tree, active) -> mi.UInt32:
         """The D-tree a vertex's radiance is splatted into: its own."""
@@ -296,6 +311,8 @@ class _TreeGuide(Guide):
                 total += f.nbytes
         if self._leaf_sums is not None:
             total += footprint(self._leaf_sums)
+        if self._overlay is not None:
+            total += 4 * dr.width(self._overlay)
         return total
 
 
@@ -379,8 +396,7 @@ class SDTreeGuide(_TreeGuide):
         self._sampling_host = Forest.empty(1)
         self._recording_host = Forest.empty(1).rebuild([0], SPLIT_REFINE, self.rho, self.dtree_max_depth,
                                                        keep_energy=False, max_nodes=self.max_nodes)
-        self._sampling = DeviceForest(self._sampling_host, self.jump_levels)
-        self._recording = DeviceForest(self._recording_host, self.jump_levels, densities=False)
+        self._upload_forests()
         self._fraction = self._learned_shares(1)
         self._reset_accumulators()
         self._recording_on = True
@@ -388,6 +404,14 @@ class SDTreeGuide(_TreeGuide):
         self.iteration = 0
         self._start_iteration(0)
         self._last_refine = {}
+
+    def _upload_forests(self) -> None:
+        """The sampling and recording forests on the device, and where each sampling leaf lies in the recording
+        trees (:meth:`Forest.overlay`)."""
+        self._sampling = DeviceForest(self._sampling_host, self.jump_levels)
+        self._recording = DeviceForest(self._recording_host, self.jump_levels, densities=False)
+        overlay = self._sampling_host.overlay(self._recording_host)
+        self._overlay = None if overlay is None else mi.UInt32(padded(overlay))
 
     def _locate(self, p, active):
         return stree_locate(self._s_device, p, active)
@@ -452,8 +476,7 @@ class SDTreeGuide(_TreeGuide):
                                              keep_energy=False, max_nodes=self.max_nodes)
         host_seconds = time.perf_counter() - start
         self._s_device = self.stree.to_device(leaf_boxes=self._splat_jittered())
-        self._sampling = DeviceForest(self._sampling_host, self.jump_levels)
-        self._recording = DeviceForest(self._recording_host, self.jump_levels, densities=False)
+        self._upload_forests()
         self._reset_accumulators()
         self.built = True
         dr.sync_thread()
