@@ -600,19 +600,8 @@ def test_quadtree_grid_records_the_leaf_its_descent_found(cornell):
     from guiding.testing import train
 
     guide = train(cornell, QuadtreeGridGuide(spatial_resolution=4), spp=16)
-    integrator = GuidedPathIntegrator(guide=guide)
-    sensor = cornell.sensors()[0]
-    recorded = []
-    for recording in (guide._sampling, copy.copy(guide._sampling)):     # the same tree, but not the same object
-        guide._recording = recording
-        guide._reset_accumulators()
-        integrator.render_pass(cornell, sensor, seed=5, spp=4)
-        recorded.append(guide.recorded_sums())
-    (handed, counts), (looked_up, looked_up_counts) = recorded
-    assert counts.sum() > 1000 and counts.sum() == looked_up_counts.sum()
-    assert np.count_nonzero(counts != looked_up_counts) <= 1e-3 * np.count_nonzero(counts)
-    assert np.count_nonzero(handed != looked_up) <= 1e-3 * np.count_nonzero(handed)
-    assert handed.sum() == pytest.approx(looked_up.sum(), rel=1e-4)
+    # The same tree, but not the same object: the recording leaf is looked up.
+    _assert_same_leaves_recorded(guide, cornell, "_recording", (guide._sampling, copy.copy(guide._sampling)))
 
 
 def test_sdtree_records_through_the_overlay_what_a_lookup_records(cornell):
@@ -627,17 +616,24 @@ def test_sdtree_records_through_the_overlay_what_a_lookup_records(cornell):
         integrator.render_pass(cornell, sensor, seed=spp_done, spp=8)
         guide.update(spp_done)
     assert guide.records() and guide._recording_host.n_nodes != guide._sampling_host.n_nodes
+    _assert_same_leaves_recorded(guide, cornell, "_overlay", (guide._overlay, None))
+
+
+def _assert_same_leaves_recorded(guide, scene, attribute: str, values: tuple):
+    """One pass recorded with the guide's ``attribute`` set to each of ``values`` fills the same leaves with the same
+    energy (but for directions within rounding of a leaf's edge)."""
+    integrator = GuidedPathIntegrator(guide=guide)
     recorded = []
-    for overlay in (guide._overlay, None):
-        guide._overlay = overlay
+    for value in values:
+        setattr(guide, attribute, value)
         guide._reset_accumulators()
-        integrator.render_pass(cornell, sensor, seed=5, spp=4)
+        integrator.render_pass(scene, scene.sensors()[0], seed=5, spp=4)
         recorded.append(guide.recorded_sums())
-    (overlaid, counts), (looked_up, looked_up_counts) = recorded
-    assert counts.sum() > 1000 and counts.sum() == looked_up_counts.sum()
-    assert np.count_nonzero(counts != looked_up_counts) <= 1e-3 * np.count_nonzero(counts)
-    assert np.count_nonzero(overlaid != looked_up) <= 1e-3 * np.count_nonzero(overlaid)
-    assert overlaid.sum() == pytest.approx(looked_up.sum(), rel=1e-4)
+    (energy, counts), (other_energy, other_counts) = recorded
+    assert counts.sum() > 1000 and counts.sum() == other_counts.sum()
+    assert np.count_nonzero(counts != other_counts) <= 1e-3 * np.count_nonzero(counts)
+    assert np.count_nonzero(energy != other_energy) <= 1e-3 * np.count_nonzero(energy)
+    assert energy.sum() == pytest.approx(other_energy.sum(), rel=1e-4)
 
 
 def test_progressive_render_statistics_and_one_kernel(cornell):
