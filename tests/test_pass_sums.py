@@ -21,20 +21,23 @@ def _added(entries: int, index: np.ndarray, target: np.ndarray, mode: dr.ReduceM
 
 
 def test_tables_beyond_drjits_threshold_are_expanded_while_their_copies_fit():
-    """Dr.Jit's own limit counts entries (10⁶); ours bounds the bytes of the copies: a table of 2²¹ float64 values
-    (the SD-tree's recorded sums once its recording trees pass 2¹⁷ nodes) is added into without atomics while its
-    copies, one per thread, fit in EXPAND_BYTES, and a table whose copies would not is left to atomics."""
-    fitting = dr.zeros(mi.Float64, 1 << 21)
-    assert dr.width(fitting) > dr.expand_threshold()
-    assert 8 * dr.width(fitting) * copies(fitting) <= EXPAND_BYTES      # 16 MiB per copy, a few threads
-    assert copied_per_thread(fitting) == dr.ReduceMode.Expand
-    assert footprint(fitting) == 8 * dr.width(fitting) * copies(fitting)
-    too_large = dr.zeros(mi.Float64, EXPAND_BYTES // 8 + 2)
+    """Dr.Jit's own limit counts entries (10⁶); ours bounds the bytes of the copies: the widest float64 table whose
+    copies, one per thread, fit in EXPAND_BYTES (4 Mi values on two threads: the SD-tree's recorded sums, 2²¹ values
+    once its recording trees pass 2¹⁷ nodes, are within it) is added into without atomics, and a wider one beyond
+    Dr.Jit's limit is left to atomics; a table within Dr.Jit's limit is copied whatever the thread count."""
+    threads = copies(dr.zeros(mi.Float64, 2))
+    widest = EXPAND_BYTES // (8 * threads)
+    if widest > dr.expand_threshold():       # on up to 8 threads
+        fitting = dr.zeros(mi.Float64, widest)
+        assert copied_per_thread(fitting) == dr.ReduceMode.Expand
+        assert footprint(fitting) == 8 * widest * threads
+    too_large = dr.zeros(mi.Float64, max(widest, dr.expand_threshold()) + 2)
     assert copied_per_thread(too_large) == dr.ReduceMode.Local
     assert footprint(too_large) == 8 * dr.width(too_large)
     small = dr.zeros(mi.Float64, 1024)
     assert copied_per_thread(small) == dr.ReduceMode.Expand
-    assert planned_footprint(512) == footprint(dr.zeros(mi.Float64, 1024))
+    assert footprint(small) == 8 * 1024 * threads
+    assert planned_footprint(512) == footprint(small)
 
 
 @pytest.mark.parametrize("entries", [1 << 10, 1 << 20])

@@ -8,7 +8,7 @@ import pytest
 from mitsuba.chi2 import LineDomain
 
 from guiding.guides.bsdf_fraction import LearnedBsdfFraction
-from guiding.guides.dtree import SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
+from guiding.guides.dtree import LEAF_BIT, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
 from guiding.guides.sdtree import QuadtreeGridGuide, SDTreeGuide, TreeVertex
 from guiding.guides.stree import STree
 from guiding.integrator import GuidedPathIntegrator
@@ -172,8 +172,14 @@ def test_overlay_names_the_recording_leaf_of_every_point():
     device = DeviceForest(recording, densities=False)
     found = device.slot_at(dr.gather(mi.UInt32, mi.UInt32(overlay), sampling_slot), points)
     expected, _ = device.lookup_uv(trees, points, with_pdf=False)
-    deeper = (overlay[sampling_slot.numpy()] & 0x80000000) == 0
-    assert 0.05 < deeper.mean() < 0.95          # both kinds of entry are met
+    # Every kind of entry is met, at sampling leaves and at the points: a recording node whose square a sampling
+    # leaf's is, a recording leaf of the same square (named by one sampling leaf), and one that several share (the
+    # recording tree merged them).
+    entries = overlay[sampling.leaf_table()[1]]
+    deeper = (entries & LEAF_BIT) == 0
+    sharing = np.unique(entries[~deeper], return_counts=True)[1]
+    assert deeper.any() and (sharing == 1).any() and (sharing > 1).any()
+    assert 0.05 < ((overlay[sampling_slot.numpy()] & LEAF_BIT) == 0).mean() < 0.95
     np.testing.assert_array_equal(found.numpy(), expected.numpy())
 
 
@@ -601,7 +607,8 @@ def test_quadtree_grid_records_the_leaf_its_descent_found(cornell):
 
     guide = train(cornell, QuadtreeGridGuide(spatial_resolution=4), spp=16)
     # The same tree, but not the same object: the recording leaf is looked up.
-    _assert_same_leaves_recorded(guide, cornell, "_recording", (guide._sampling, copy.copy(guide._sampling)))
+    _assert_same_leaves_recorded(GuidedPathIntegrator(guide=guide), cornell, "_recording",
+                                 (guide._sampling, copy.copy(guide._sampling)))
 
 
 def test_sdtree_records_through_the_overlay_what_a_lookup_records(cornell):
@@ -616,13 +623,15 @@ def test_sdtree_records_through_the_overlay_what_a_lookup_records(cornell):
         integrator.render_pass(cornell, sensor, seed=spp_done, spp=8)
         guide.update(spp_done)
     assert guide.records() and guide._recording_host.n_nodes != guide._sampling_host.n_nodes
-    _assert_same_leaves_recorded(guide, cornell, "_overlay", (guide._overlay, None))
+    # Frozen passes (the integrator was prepared): without the overlay, the guide's arrays differ, and Dr.Jit
+    # records the pass anew rather than replaying the overlay's kernel.
+    _assert_same_leaves_recorded(integrator, cornell, "_overlay", (guide._overlay, None))
 
 
-def _assert_same_leaves_recorded(guide, scene, attribute: str, values: tuple):
-    """One pass recorded with the guide's ``attribute`` set to each of ``values`` fills the same leaves with the same
-    energy (but for directions within rounding of a leaf's edge)."""
-    integrator = GuidedPathIntegrator(guide=guide)
+def _assert_same_leaves_recorded(integrator, scene, attribute: str, values: tuple):
+    """One pass recorded with the attribute ``attribute`` of the integrator's guide set to each of ``values`` fills
+    the same leaves with the same energy (but for directions within rounding of a leaf's edge)."""
+    guide = integrator.guide
     recorded = []
     for value in values:
         setattr(guide, attribute, value)

@@ -133,7 +133,7 @@ class Forest:
         square, or a larger one where ``other`` is coarser), or, where ``other`` divides it further, the node of
         ``other`` whose square it is, with the square's level (:data:`LEVEL_SHIFT`). None where ``other`` has too
         many nodes for the entries' bits."""
-        if other.n_nodes >= 1 << LEVEL_SHIFT or self.max_depth() > 31:
+        if other.n_nodes >= 1 << LEVEL_SHIFT or self.max_depth() >= 1 << (31 - LEVEL_SHIFT):
             return None
         entry = np.zeros((self.n_nodes, 4), dtype=np.uint32)
         mine = theirs = np.arange(self.n_trees)
@@ -493,7 +493,7 @@ class DeviceForest:
         deeper = mi.Bool(active) & ((entry & LEAF_BIT) == 0)
         if deeper:
             # The point's place in the node's square: exact in float32 (a product by a power of two, its fraction).
-            scaled = point * dr.reinterpret_array(mi.Float, (((entry >> LEVEL_SHIFT) & 31) + 127) << 23)
+            scaled = point * dr.reinterpret_array(mi.Float, ((entry >> LEVEL_SHIFT) + 127) << 23)
             below, _, _, _ = self.descend(None, scaled - dr.floor(scaled), False, deeper, with_pdf=False,
                                           start=entry & ((1 << LEVEL_SHIFT) - 1))
             slot = dr.select(deeper, below, slot)
