@@ -1,7 +1,8 @@
 """Choosing and starting a Mitsuba variant: ``auto``, ``llvm_ad_rgb`` (CPU) or ``cuda_ad_rgb`` (GPU).
 
 Dr.Jit's CPU backend needs libLLVM ≥ 16; with Debian's libLLVM 14/15 it aborts inside LLVM on the first kernel.
-:func:`set_variant` finds a suitable library first and otherwise stops with one line naming the fix.
+:func:`set_variant` finds a suitable library first and otherwise stops with one line naming the fix. On the CPU it
+also lets LLVM use the gather instruction where LLVM would not (:func:`use_hardware_gathers`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,18 @@ CUDA_FIX = "--variant llvm_ad_rgb (the CPU) or --variant auto"
 
 _LLVM_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib",
               "/usr/local/lib", "/opt/homebrew/opt/llvm/lib", "/usr/local/opt/llvm/lib")
+
+
+#: LLVM target CPUs on which the CPU backend's table reads are compiled into the CPU's gather instruction. LLVM uses it
+#: only on CPUs with AVX-512 or tuned ``fast-gather`` (Intel's since Skylake); elsewhere every gather of a kernel
+#: becomes a loop of one scalar load per lane. On AMD's Zen 3 the instruction is the faster of the two for every
+#: method (``bench --part gathers``, results/bench/hardware_gathers.md); other AVX2-only CPUs (Zen 2, Haswell), not
+#: measured, keep LLVM's choice.
+HARDWARE_GATHER_CPUS = ("znver3",)
+#: Overrides :data:`HARDWARE_GATHER_CPUS`: ``1`` uses the gather instruction on any AVX2 CPU, ``0`` never changes LLVM's
+#: choice.
+HARDWARE_GATHERS_ENV = "GUIDING_HARDWARE_GATHERS"
+_FAST_GATHER = "+fast-gather"
 
 
 class BackendError(GuidingError):
@@ -86,6 +99,8 @@ def set_variant(variant: str = "auto", threads: int | None = None) -> str:
         mi.set_variant(variant)
     except (ImportError, AttributeError, RuntimeError) as error:
         raise BackendError(f"cannot start variant {variant}: {error}") from None
+    if variant.startswith("llvm"):
+        use_hardware_gathers()
     if threads is not None:
         if threads < 1:
             raise BackendError(f"thread count must be >= 1, got {threads}")
@@ -94,3 +109,62 @@ def set_variant(variant: str = "auto", threads: int | None = None) -> str:
 
     integrator.register()
     return variant
+
+
+def _llvm_target():
+    """Dr.Jit's CPU target: (CPU name, feature flags, a function that sets both), through its library's
+    ``jit_llvm_target_cpu``, ``…_features``, ``…_vector_width`` and ``jit_llvm_set_target``, which its Python module
+    does not expose; None where the library lacks them."""
+    import ctypes
+
+    import drjit as dr
+
+    try:
+        core = ctypes.CDLL(os.path.join(os.path.dirname(dr.__file__), "libdrjit-core.so"))
+        cpu_of, features_of = core._Z19jit_llvm_target_cpuv, core._Z24jit_llvm_target_featuresv
+        width_of, set_target = core._Z21jit_llvm_vector_widthv, core._Z19jit_llvm_set_targetPKcS0_j
+    except (OSError, AttributeError):
+        return None
+    cpu_of.restype = features_of.restype = ctypes.c_char_p
+    width_of.restype = ctypes.c_uint32
+    set_target.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_uint32]
+    cpu = (cpu_of() or b"").decode()
+    flags = [flag for flag in (features_of() or b"").decode().split(",") if flag]
+
+    def retarget(new_flags: list[str]) -> None:
+        set_target(cpu.encode(), ",".join(new_flags).encode(), width_of())
+
+    return cpu, flags, retarget
+
+
+def _gathers(flags: list[str]) -> bool:
+    return "+avx512f" in flags or ("+avx2" in flags and _FAST_GATHER in flags)
+
+
+def use_hardware_gathers(enable: bool | None = None) -> bool:
+    """Whether the CPU backend's kernels compiled from now on read tables with the CPU's gather instruction: on a CPU
+    with AVX2 and without AVX-512, as ``enable`` says (None: as $GUIDING_HARDWARE_GATHERS says, else on
+    :data:`HARDWARE_GATHER_CPUS`); elsewhere LLVM's choice stays. Call it after the LLVM variant is set
+    (:func:`set_variant` does). Results are bit-identical either way; Dr.Jit's kernel cache keys on the target, so
+    each choice compiles its own kernels."""
+    target = _llvm_target()
+    if target is None:
+        return False
+    cpu, flags, retarget = target
+    if "+avx512f" in flags or "+avx2" not in flags:
+        return _gathers(flags)
+    if enable is None:
+        choice = os.environ.get(HARDWARE_GATHERS_ENV, "")
+        if choice not in ("", "0", "1"):
+            raise BackendError(f"{HARDWARE_GATHERS_ENV} must be 0 or 1, got '{choice}'")
+        enable = cpu in HARDWARE_GATHER_CPUS if choice == "" else choice == "1"
+    if enable != _gathers(flags):
+        retarget([flag for flag in flags if flag != _FAST_GATHER] + ([_FAST_GATHER] if enable else []))
+    return enable
+
+
+def gathers_in_use() -> bool | None:
+    """Whether the CPU backend's kernels compiled now read tables with the gather instruction; None where Dr.Jit's
+    target cannot be read."""
+    target = _llvm_target()
+    return None if target is None else _gathers(target[1])

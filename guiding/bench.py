@@ -60,16 +60,19 @@ def _timed_pass(driver: PassDriver, spp: int, seed: int) -> PassTiming:
 
 
 def interleaved_passes(scene: mi.Scene, integrators: dict[str, object], passes: int = 12, pass_spp: int = 8,
-                       warmup: int = 2) -> dict[str, list[PassTiming]]:
+                       warmup: int = 2, before_pass=None) -> dict[str, list[PassTiming]]:
     """``warmup + passes`` passes of every integrator, interleaved (A, B, A, B, …) so that machine noise hits
     them alike; returns the timed passes (warm-up passes dropped, except that compile time of every pass is
-    kept in the first timed record's ``compile``)."""
+    kept in the first timed record's ``compile``). ``before_pass(name)``, if given, runs before each pass of the
+    integrator ``name`` (outside the timed region)."""
     drivers = {name: PassDriver(scene, integrator) for name, integrator in integrators.items()}
     for driver in drivers.values():
         driver.prepare()
     timings = {name: [] for name in integrators}
     for index in range(warmup + passes):
         for name, driver in drivers.items():
+            if before_pass is not None:
+                before_pass(name)
             timings[name].append(_timed_pass(driver, pass_spp, pass_seed(0, index)))
     timed = {}
     for name, records in timings.items():

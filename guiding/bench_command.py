@@ -22,7 +22,10 @@ PASS_SCHEDULE_SCENES = ("cornell-box:0.125", "veach-ajar:0.0625", "staircase2:0.
 DEFAULT_SCENES = {"cost": (*(f"{s}:0.25" for s in BENCH_SCENES), *BENCH_EXTRA_SCENES),
                   "pass-schedule": PASS_SCHEDULE_SCENES,
                   "kernel-size": tuple(f"{s}:0.0625" for s in BENCH_SCENES),
-                  "profile": tuple(f"{s}:0.25" for s in BENCH_SCENES)}
+                  "profile": tuple(f"{s}:0.25" for s in BENCH_SCENES),
+                  "gathers": tuple(f"{s}:0.25" for s in BENCH_SCENES)}
+#: What ``bench --part gathers`` times by default beside ``path`` and ``brdf``: the paper's method and the baseline.
+GATHERS_METHODS = ("ours", "sdtree")
 BENCH_METHODS = ("ours", "ours-uniform-proposals", "ours-no-rejopt", "ours-expected", "sarsa-sphere_inv",
                  "sarsa-hemi_inv", "sdtree", "quadtree-grid")
 
@@ -43,8 +46,10 @@ def command_bench(args) -> None:
     from .scenes import find_scene
 
     schedule, size, profile = args.part == "pass-schedule", args.part == "kernel-size", args.part == "profile"
+    gathers = args.part == "gathers"
     args.scenes = args.scenes or ",".join(DEFAULT_SCENES[args.part])
-    args.methods = args.methods or ",".join(PASS_SCHEDULE_METHODS if schedule else BENCH_METHODS)
+    args.methods = args.methods or ",".join(PASS_SCHEDULE_METHODS if schedule else GATHERS_METHODS if gathers
+                                            else BENCH_METHODS)
     args.out = args.out or ("results/pass_schedule" if schedule else "results/bench")
     scenes = parse_scene_list(args.scenes)
     for name, _ in scenes:
@@ -83,6 +88,20 @@ def command_bench(args) -> None:
                     "`embree`: ray traversal; see guiding/cpu_profile.py)", device,
                     f"python -m guiding bench --part profile --scenes {args.scenes} --methods {args.methods} "
                     f"--passes {args.passes}")
+        print(frame.to_string(index=False))
+        return
+    if gathers:
+        if not variant.startswith("llvm"):
+            raise GuidingError("bench --part gathers compares CPU builds: run it with --variant llvm_ad_rgb")
+        from .gather_bench import gathers_table
+
+        frame = gathers_table(scenes, [m for m in args.methods.split(",") if m], args.passes)
+        write_table(frame, out / "hardware_gathers", "Table reads compiled into the CPU's gather instruction against "
+                    f"LLVM's loop of scalar loads (median kernel time per spp of {args.passes} interleaved passes of 8 "
+                    "spp after 2 warm-up passes, both builds in one run; `speed_up`: scalar-load time over gather "
+                    "time; see guiding/gather_bench.py)", device,
+                    f"python -m guiding bench --part gathers --scenes {args.scenes} --methods {args.methods} "
+                    f"--passes {args.passes}" + backend_options)
         print(frame.to_string(index=False))
         return
     if schedule:

@@ -117,5 +117,10 @@ def device_name(variant: str) -> str:
     # The widest vector extension decides Dr.Jit's packet width (8 lanes with AVX2, 16 with AVX-512), and with it
     # the cost of the guided bounce relative to brdf's: a CPU model name alone hides it (AMD EPYC: Zen 3 or Zen 4).
     vectors = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else None
-    details = ", ".join(filter(None, [vectors, f"{os.cpu_count()} threads"]))
+    # So are table reads: LLVM compiles them into gather instructions or into a scalar load per lane (on AVX2 CPUs,
+    # guiding.backend.use_hardware_gathers decides).
+    from .backend import gathers_in_use
+
+    reads = {True: "gather instructions", False: "scalar loads", None: None}[gathers_in_use()]
+    details = ", ".join(filter(None, [vectors, reads, f"{os.cpu_count()} threads"]))
     return f"CPU: {fields.get('model name', platform.processor() or platform.machine())} ({details})"

@@ -137,3 +137,37 @@ def test_cuda_driver_without_a_device_names_the_fix(monkeypatch):
     monkeypatch.setattr(dr, "has_backend", lambda jit_backend: False)
     with pytest.raises(backend.BackendError, match="cannot start a CUDA device.*--variant llvm_ad_rgb"):
         backend.set_variant("cuda_ad_rgb")
+
+
+def test_gather_instructions_and_scalar_loads_render_the_same_bits(cornell):
+    """Table reads compiled into gather instructions or into scalar loads (guiding.backend.use_hardware_gathers; on
+    a CPU with AVX-512, or without AVX2, both builds are LLVM's own) give bit-identical passes, the guide's learning
+    between them included."""
+    from guiding.driver import PassDriver, pass_seed
+    from guiding.integrator import GuidedPathIntegrator
+    from guiding.methods import make_guide
+
+    images = {}
+    try:
+        for hardware in (True, False):
+            assert backend.use_hardware_gathers(hardware) == backend.gathers_in_use()
+            driver = PassDriver(cornell, GuidedPathIntegrator(guide=make_guide("ours")))
+            driver.prepare()
+            images[hardware] = [np.array(driver.run(pass_seed(3, index), 2).image) for index in range(3)]
+    finally:
+        backend.use_hardware_gathers()
+    for with_gathers, with_loads in zip(images[True], images[False]):
+        assert np.any(with_gathers > 0)
+        np.testing.assert_array_equal(with_gathers, with_loads)
+
+
+def test_bad_hardware_gathers_setting_names_the_choices(monkeypatch):
+    try:
+        if backend.use_hardware_gathers(False) == backend.use_hardware_gathers(True):
+            pytest.skip("no choice on this CPU (AVX-512, or no AVX2): LLVM's own stays")
+        monkeypatch.setenv(backend.HARDWARE_GATHERS_ENV, "yes")
+        with pytest.raises(backend.BackendError, match="must be 0 or 1"):
+            backend.use_hardware_gathers()
+    finally:
+        monkeypatch.delenv(backend.HARDWARE_GATHERS_ENV)
+        backend.use_hardware_gathers()
