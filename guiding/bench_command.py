@@ -91,9 +91,12 @@ def command_bench(args) -> None:
         print(frame.to_string(index=False))
         return
     if gathers:
-        if not variant.startswith("llvm"):
-            raise GuidingError("bench --part gathers compares CPU builds: run it with --variant llvm_ad_rgb")
-        from .gather_bench import gathers_table
+        from .gather_bench import gathers_chosen, gathers_table
+
+        if not variant.startswith("llvm") or not gathers_chosen():
+            raise GuidingError("bench --part gathers compares two CPU builds, which only a CPU with AVX2 and without "
+                               "AVX-512 has (run it with --variant llvm_ad_rgb there)")
+        device = device_name(variant, reads=False)
 
         frame = gathers_table(scenes, [m for m in args.methods.split(",") if m], args.passes)
         write_table(frame, out / "hardware_gathers", "Table reads compiled into the CPU's gather instruction against "

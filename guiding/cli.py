@@ -141,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "gathers: the four at 1/4)")
     bench.add_argument("--passes", type=_positive_int, default=8, help="timed passes per integrator (default 8)")
     bench.add_argument("--methods", help="methods timed against brdf (comma-separated; default: cost: every kind, "
-                       "pass-schedule: brdf, ours, ours-plus, sdtree)")
+                       "pass-schedule: brdf, ours, ours-plus, sdtree; gathers: ours, sdtree)")
     bench.add_argument("--out", help="output folder (default results/bench, results/pass_schedule)")
     bench.add_argument("--no-breakdown", action="store_true",
                        help="skip the cost breakdown (the guided methods' stages, results/bench/cost_breakdown.md)")

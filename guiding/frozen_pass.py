@@ -19,6 +19,7 @@ created outside the scene after that makes the next recording fail, in the middl
 
 from __future__ import annotations
 
+import gc
 import weakref
 
 import drjit as dr
@@ -107,7 +108,15 @@ class FrozenPasses:
         guide = integrator.path_guide
         key = (guide.trace_key(), integrator.max_depth, integrator.rr_depth, integrator.rr_min,
                tuple(sensor.film().crop_size()))     # the paths' width is a literal of the kernel
-        return self._render(scene, sensor, dr.opaque(mi.UInt32, seed), spp, key)
+        # No garbage collection inside: Dr.Jit aborts when a collection frees another frozen function's recordings
+        # in the middle of a recording, and a reference cycle anywhere in the process may hold one.
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            return self._render(scene, sensor, dr.opaque(mi.UInt32, seed), spp, key)
+        finally:
+            if collecting:
+                gc.enable()
 
     @property
     def recordings(self) -> int:

@@ -15,7 +15,7 @@ import mitsuba as mi
 import numpy as np
 import pandas as pd
 
-from .backend import use_hardware_gathers
+from .backend import llvm_target_kept, use_hardware_gathers
 from .bench import _resolution, interleaved_passes
 
 #: Suffix of the integrator names of the builds with scalar loads.
@@ -40,7 +40,7 @@ def gathers_table(scenes: list[tuple[str, float]], methods: list[str], passes: i
 
     names = list(dict.fromkeys(["path", "brdf", *methods]))
     rows = []
-    try:
+    with llvm_target_kept():
         for number, (name, scale) in enumerate(scenes, 1):
             print(f"bench: scene {number}/{len(scenes)} {name} (scale {scale:g}): {', '.join(names)}, with gather "
                   f"instructions and with scalar loads, {passes} timed passes each", file=sys.stderr, flush=True)
@@ -60,6 +60,10 @@ def gathers_table(scenes: list[tuple[str, float]], methods: list[str], passes: i
                              "speed_up": loads / gathers,
                              "ratio_to_brdf_gathers": gathers / per_spp["brdf"],
                              "ratio_to_brdf_scalar_loads": loads / per_spp["brdf" + SCALAR_LOADS]})
-    finally:
-        use_hardware_gathers()      # this machine's default again
     return pd.DataFrame(rows)
+
+
+def gathers_chosen() -> bool:
+    """Whether this CPU backend has the choice (AVX2 without AVX-512): elsewhere both builds would be LLVM's own."""
+    with llvm_target_kept():
+        return use_hardware_gathers(True) != use_hardware_gathers(False)

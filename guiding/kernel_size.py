@@ -3,9 +3,11 @@
 Why it is measured: on the CPU, Dr.Jit compiles the path loop into one kernel that runs the loop's whole body for
 every packet of lanes (8 with AVX2, 16 with AVX-512), and the parts a lane does not need are masked, not skipped
 (only a symbolic ``if`` whose condition no lane of the packet meets is skipped). Where LLVM deems the CPU's gather
-instruction slow (AVX2 on AMD Zen 3), it turns each gather into a loop over the lanes (a branch and a scalar load
-per lane), so a table read costs tens of instructions; elsewhere (AVX-512 on Zen 4, say) it emits ``vpgatherdd``,
-counted in ``hardware_gathers``. The time per ray follows the instructions the body holds more than the arithmetic it does,
+instruction slow (AVX2 without AVX-512 and without fast-gather tuning: AMD Zen 3, say), it turns each gather into a
+loop over the lanes (a branch and a scalar load per lane), so a table read costs tens of instructions; elsewhere
+(AVX-512, Intel since Skylake) it emits ``vpgatherdd``, counted in ``hardware_gathers``. On Zen 3 the package asks
+for the instruction (:func:`guiding.backend.use_hardware_gathers`), so counts made there before it are not
+comparable with later ones. The time per ray follows the instructions the body holds more than the arithmetic it does,
 and the instruction count of a method's kernel against ``brdf``'s is a noise-free account of where the guided
 bounce's time goes.
 

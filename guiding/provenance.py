@@ -98,8 +98,9 @@ def render_provenance(variant: str) -> dict:
             "date": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
 
 
-def device_name(variant: str) -> str:
-    """The device a variant renders on, in words (``CPU: … (N threads)``, ``GPU: …``)."""
+def device_name(variant: str, reads: bool = True) -> str:
+    """The device a variant renders on, in words (``CPU: … (N threads)``, ``GPU: …``); with ``reads``, how the CPU
+    backend's kernels read tables where it has the choice."""
     if variant.startswith("cuda"):
         try:
             names = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
@@ -117,10 +118,10 @@ def device_name(variant: str) -> str:
     # The widest vector extension decides Dr.Jit's packet width (8 lanes with AVX2, 16 with AVX-512), and with it
     # the cost of the guided bounce relative to brdf's: a CPU model name alone hides it (AMD EPYC: Zen 3 or Zen 4).
     vectors = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else None
-    # So are table reads: LLVM compiles them into gather instructions or into a scalar load per lane (on AVX2 CPUs,
-    # guiding.backend.use_hardware_gathers decides).
+    # So are table reads: LLVM compiles them into gather instructions or into a scalar load per lane (on AVX2 CPUs
+    # without AVX-512, guiding.backend.use_hardware_gathers decides; None: LLVM decides from the CPU's name).
     from .backend import gathers_in_use
 
-    reads = {True: "gather instructions", False: "scalar loads", None: None}[gathers_in_use()]
-    details = ", ".join(filter(None, [vectors, reads, f"{os.cpu_count()} threads"]))
+    table_reads = {True: "gather instructions", False: "scalar loads", None: None}[gathers_in_use()] if reads else None
+    details = ", ".join(filter(None, [vectors, table_reads, f"{os.cpu_count()} threads"]))
     return f"CPU: {fields.get('model name', platform.processor() or platform.machine())} ({details})"

@@ -148,26 +148,52 @@ def test_gather_instructions_and_scalar_loads_render_the_same_bits(cornell):
     from guiding.methods import make_guide
 
     images = {}
-    try:
+    with backend.llvm_target_kept():
         for hardware in (True, False):
             assert backend.use_hardware_gathers(hardware) == backend.gathers_in_use()
             driver = PassDriver(cornell, GuidedPathIntegrator(guide=make_guide("ours")))
             driver.prepare()
             images[hardware] = [np.array(driver.run(pass_seed(3, index), 2).image) for index in range(3)]
-    finally:
-        backend.use_hardware_gathers()
     for with_gathers, with_loads in zip(images[True], images[False]):
         assert np.any(with_gathers > 0)
         np.testing.assert_array_equal(with_gathers, with_loads)
 
 
+def test_the_gather_build_compiles_gather_instructions(capfd):
+    """Where the CPU has the choice, the two builds are different machine code: a table read is a gather instruction
+    in one and none in the other (Dr.Jit's disassembly of a kernel new to its cache)."""
+    import random
+
+    import drjit as dr
+    import mitsuba as mi
+
+    from guiding.gather_bench import gathers_chosen
+    from guiding.kernel_size import parse_disassembly
+
+    if not gathers_chosen():
+        pytest.skip("no choice on this CPU (AVX-512, or no AVX2): LLVM's own stays")
+    gathers = {}
+    level = dr.log_level()
+    with backend.llvm_target_kept():
+        for hardware in (True, False):
+            backend.use_hardware_gathers(hardware)
+            table = dr.arange(mi.Float, 1000)
+            dr.eval(table)
+            # A literal in the reading kernel: a kernel no cache holds, so that it is compiled (and disassembled).
+            read = dr.gather(mi.Float, table, dr.arange(mi.UInt32, 100) * 7 % 1000) * random.uniform(1, 2)
+            capfd.readouterr()
+            dr.set_log_level(dr.LogLevel.Trace)
+            try:
+                dr.eval(read)
+            finally:
+                dr.set_log_level(level)
+            log = capfd.readouterr()
+            modules = parse_disassembly(log.out + log.err)
+            gathers[hardware] = sum(count for module in modules for _, count in module)
+    assert gathers[True] > 0 and gathers[False] == 0
+
+
 def test_bad_hardware_gathers_setting_names_the_choices(monkeypatch):
-    try:
-        if backend.use_hardware_gathers(False) == backend.use_hardware_gathers(True):
-            pytest.skip("no choice on this CPU (AVX-512, or no AVX2): LLVM's own stays")
-        monkeypatch.setenv(backend.HARDWARE_GATHERS_ENV, "yes")
-        with pytest.raises(backend.BackendError, match="must be 0 or 1"):
-            backend.use_hardware_gathers()
-    finally:
-        monkeypatch.delenv(backend.HARDWARE_GATHERS_ENV)
+    monkeypatch.setenv(backend.HARDWARE_GATHERS_ENV, "yes")
+    with pytest.raises(backend.BackendError, match="must be 0 or 1"):
         backend.use_hardware_gathers()
