@@ -167,6 +167,19 @@ def _gathers(flags: list[str]) -> bool | None:
     return True if _FAST_GATHER in flags else False if _SLOW_GATHER in flags else None
 
 
+def _choosable(flags: list[str]) -> bool:
+    """Whether the gather instruction is a choice for these target flags: AVX2 has it, and LLVM always takes it with
+    AVX-512."""
+    return "+avx2" in flags and "+avx512f" not in flags
+
+
+def gathers_choosable() -> bool:
+    """Whether this CPU backend's table reads can be either gather instructions or scalar loads
+    (:func:`use_hardware_gathers`); elsewhere both settings give LLVM's own."""
+    target = _llvm_target()
+    return target is not None and _choosable(target[1])
+
+
 def _environment_choice() -> bool | None:
     """$GUIDING_HARDWARE_GATHERS: True (``1``), False (``0``) or None (unset)."""
     choice = os.environ.get(HARDWARE_GATHERS_ENV, "")
@@ -189,12 +202,11 @@ def use_hardware_gathers(enable: bool | None = None) -> bool | None:
     if target is None:
         return None
     cpu, flags, retarget = target
-    if "+avx512f" in flags or "+avx2" not in flags:
+    if not _choosable(flags):
         return _gathers(flags)
-    if enable is None and environment is None:
-        enable = True if cpu in HARDWARE_GATHER_CPUS else None
-    elif enable is None:
-        enable = True if environment else None        # 0: LLVM's choice
+    if enable is None:
+        wanted = cpu in HARDWARE_GATHER_CPUS if environment is None else environment
+        enable = True if wanted else None         # not wanted: LLVM's choice
     tuned = [flag for flag in flags if flag not in (_FAST_GATHER, _SLOW_GATHER)]
     tuned += [] if enable is None else [_FAST_GATHER if enable else _SLOW_GATHER]
     if tuned != flags:

@@ -91,13 +91,13 @@ def command_bench(args) -> None:
         print(frame.to_string(index=False))
         return
     if gathers:
-        from .gather_bench import gathers_chosen, gathers_table
+        from .backend import gathers_choosable
+        from .gather_bench import gathers_table
 
-        if not variant.startswith("llvm") or not gathers_chosen():
+        if not variant.startswith("llvm") or not gathers_choosable():
             raise GuidingError("bench --part gathers compares two CPU builds, which only a CPU with AVX2 and without "
                                "AVX-512 has (run it with --variant llvm_ad_rgb there)")
         device = device_name(variant, reads=False)
-
         frame = gathers_table(scenes, [m for m in args.methods.split(",") if m], args.passes)
         write_table(frame, out / "hardware_gathers", "Table reads compiled into the CPU's gather instruction against "
                     f"LLVM's loop of scalar loads (median kernel time per spp of {args.passes} interleaved passes of 8 "

@@ -62,8 +62,3 @@ def gathers_table(scenes: list[tuple[str, float]], methods: list[str], passes: i
                              "ratio_to_brdf_scalar_loads": loads / per_spp["brdf" + SCALAR_LOADS]})
     return pd.DataFrame(rows)
 
-
-def gathers_chosen() -> bool:
-    """Whether this CPU backend has the choice (AVX2 without AVX-512): elsewhere both builds would be LLVM's own."""
-    with llvm_target_kept():
-        return use_hardware_gathers(True) != use_hardware_gathers(False)
