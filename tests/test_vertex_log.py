@@ -15,7 +15,7 @@ from guiding.guides.vertex_log import NO_RECORD, VertexLog, walk_backward
 
 MAX_DEPTH = 8
 LANES = 1024            # many packets, on any vector width
-ITERATIONS = 12         # more than MAX_DEPTH: full logs stop logging
+ITERATIONS = 12         # more than MAX_DEPTH: from the MAX_DEPTH-th iteration on, nothing is logged
 STRIDE = 64             # a target is lane·STRIDE + its slot
 
 # The paths' pattern: _skipped and _length take Dr.Jit arrays (the log) and NumPy arrays (what it must give back).
@@ -65,14 +65,14 @@ def _log_and_walk(log: VertexLog):
 
 
 def _expected_log() -> tuple[np.ndarray, np.ndarray]:
-    """Vertices each lane logs (from its first iteration with a target, at most MAX_DEPTH), and which of its slots
-    hold a target."""
+    """Vertices each lane logs (from its first iteration with a target, in the first MAX_DEPTH iterations), and
+    which of its slots hold a target."""
     lane = np.arange(LANES)
     n = np.zeros(LANES, dtype=np.int64)
     slots = np.zeros((LANES, MAX_DEPTH), dtype=np.int64)
     for k in range(ITERATIONS):
         skipped = _skipped(lane, k)
-        written = (k < _length(lane)) & (n < MAX_DEPTH) & ((n > 0) | ~skipped)
+        written = (k < _length(lane)) & (k < MAX_DEPTH) & ((n > 0) | ~skipped)
         slots[lane[written], n[written]] = ~skipped[written]
         n += written
     return n, slots

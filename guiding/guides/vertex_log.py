@@ -14,13 +14,21 @@ compact pool sized from earlier passes would still have needed about 100 MiB in 
 Russian-roulette depth before the guide has learned anything) and a fallback for paths that find it full. Local
 memory needs neither: it is sized by ``max_depth`` per lane in flight, and no vertex is ever dropped.
 
-**Entry** (:class:`VertexLog`), ``max_depth`` per path, entry ``i`` for the path's ``i``-th vertex from its first
+**Entry** (:class:`VertexLog`), ``max_depth`` per path, one per iteration of the path loop from the path's first
 vertex with a target (the vertices before it have nothing to learn and nothing the walk needs): ``emitted`` (RGB, the
 radiance ``Le`` emitted at the vertex towards the previous one), ``weight`` (RGB, ``w = f·cos/pdf`` including
 Russian roulette, 0 where the path ends), ``target`` (UInt32: where the guide records the vertex's estimate, an
 accumulator index of its own; :data:`NO_RECORD` for none) and the values a guide asks for by name (the SD-tree's
 ``pdf``, the density of the sampled direction, and ``score`` and ``tree`` for its learned BSDF share). The path's loop state
-(:meth:`VertexLog.new_paths`) carries the buffer and the number of vertices logged.
+(:meth:`VertexLog.new_paths`) carries the buffer, the iteration, and the first and number of vertices logged.
+
+**Why by iteration.** The CPU backend reads and writes local memory with one vector load or store where every lane
+of a packet names the same entry, and with a gather or a scatter of one load or store per lane where they differ
+(it tests which, at each access). Every lane still in the path loop is at the same iteration, so a vertex stored at
+its iteration is one store per field; and the walk goes down the iterations from ``max_depth`` for every lane alike,
+each lane taking in its own vertices only, so that its reads are one load per field too (indexed by the lanes' own
+counts, which differ between paths that start logging at different vertices and end at different lengths, they were
+per lane).
 
 :func:`known_or_found` is how a guide finds where a vertex's estimate goes (this log's ``target``, or a SARSA
 record index) when its sampler may have handed it over.
@@ -68,8 +76,9 @@ def _types(extra: tuple[tuple[str, type], ...]) -> tuple[type, type]:
     if key not in _TYPES:
         fields = {"emitted": mi.Color3f, "weight": mi.Color3f, "target": mi.UInt32, **dict(extra)}
         entry = _pytree("VertexEntry", "One logged vertex (see the module docstring).", fields)
-        cursor = _pytree("PathCursor", "A path's log: its vertices (local memory) and how many are logged.",
-                         {"entries": dr.Local, "n": mi.UInt32})
+        cursor = _pytree("PathCursor", "A path's log: its vertices (local memory, by iteration), the iteration, and "
+                         "the first and number of vertices logged.",
+                         {"entries": dr.Local, "step": mi.UInt32, "first": mi.UInt32, "n": mi.UInt32})
         _TYPES[key] = entry, cursor
     return _TYPES[key]
 
@@ -90,11 +99,12 @@ class VertexLog:
     def new_paths(self, size: int):
         """The loop state of ``size`` paths, none of their vertices logged yet.
 
-        The count is allocated at the full width, not as a scalar 0: Dr.Jit 1.5's CPU backend takes a local-memory
-        index whose variable has width 1 for the same in every lane of a packet, and the symbolic loop keeps the
-        width of a loop variable's initial value, so a scalar count, once the lanes' counts differ, wrote every
-        lane's vertex at the packet's largest count (tests/test_vertex_log.py)."""
-        return self._cursor(entries=dr.alloc_local(self._entry, self.max_depth), n=dr.zeros(mi.UInt32, size))
+        Every field is allocated at the full width, not as a scalar 0: Dr.Jit 1.5's CPU backend takes a local-memory
+        index whose variable has width 1 for the same in every lane of a packet (its largest), and the symbolic loop
+        keeps the width of a loop variable's initial value, so a scalar count, once the lanes' counts differ, wrote
+        every lane's vertex at the packet's largest count (tests/test_vertex_log.py)."""
+        return self._cursor(entries=dr.alloc_local(self._entry, self.max_depth), step=dr.zeros(mi.UInt32, size),
+                            first=dr.zeros(mi.UInt32, size), n=dr.zeros(mi.UInt32, size))
 
     def append(self, cursor, emitted: mi.Spectrum, weight: mi.Spectrum, continues: mi.Bool, target: mi.UInt32,
                active: mi.Bool, needed: mi.Bool | bool = False, **extra):
@@ -102,18 +112,20 @@ class VertexLog:
         estimate goes, and a value for each of the log's ``extra`` fields, by name); returns ``cursor``
         moved on. A path's log starts at its first vertex with a target, or that the guide marks ``needed`` for
         something else its walk does: the walk needs no vertex before it (a path through delta lobes only logs
-        nothing and walks nothing). Beyond ``max_depth`` vertices a path logs nothing (local memory is not
-        bounds-checked)."""
+        nothing and walks nothing). Called once per iteration of the loop (its entries are by iteration): from the
+        ``max_depth``-th iteration on a path logs nothing (local memory is not bounds-checked)."""
         starts = (target != NO_RECORD) | needed
-        written = mi.Bool(active) & (cursor.n < self.max_depth) & ((cursor.n > 0) | starts)
+        written = mi.Bool(active) & (cursor.step < self.max_depth) & ((cursor.n > 0) | starts)
         # The walk starts at a path's last vertex with L = 0: a weight there other than 0 (non-finite) would
         # make w·L NaN, so a vertex the path does not continue from logs w = 0.
         entry = self._entry(emitted=mi.Color3f(emitted), weight=mi.Color3f(dr.select(continues, weight, 0)),
                             target=mi.UInt32(target))
         for name, kind in self.extra.items():
             setattr(entry, name, kind(extra[name]))
-        cursor.entries.write(entry, cursor.n, written)
+        cursor.entries.write(entry, cursor.step, written)
+        cursor.first = dr.select(written & (cursor.n == 0), cursor.step, cursor.first)
         cursor.n = dr.select(written, cursor.n + 1, cursor.n)
+        cursor.step += 1
         return cursor
 
 
@@ -125,9 +137,11 @@ def walk_backward(cursor, visit: Callable[[object, mi.Color3f], None]) -> None:
     ``entry`` is the vertex's :class:`VertexLog` entry (``entry.target``: where its estimate goes, :data:`NO_RECORD`
     for none), ``L`` (RGB) the radiance that arrived at it along its sampled direction."""
     L = mi.Color3f(0)
-    j = mi.UInt32(cursor.n)
+    j = dr.full(mi.UInt32, len(cursor.entries), dr.width(cursor.n))     # the same in every lane (module docstring)
+    end = cursor.first + cursor.n
     while j > 0:
         j -= 1
-        entry = cursor.entries.read(j)
-        visit(entry, L)
-        L = entry.emitted + entry.weight * L
+        if (j >= cursor.first) & (j < end):
+            entry = cursor.entries.read(j)
+            visit(entry, L)
+            L = entry.emitted + entry.weight * L
