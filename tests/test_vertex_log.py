@@ -1,9 +1,10 @@
 """The Monte Carlo vertex log gives back, in the backward walk, every vertex a path logged, in its own slot.
 
-Inside a symbolic loop, with paths that start logging at different iterations, so that the lanes of a packet hold
-different counts (the path loop's case: a path logs from its first guided vertex on). That is where a count of
-width 1 goes wrong on Dr.Jit's CPU backend (see ``VertexLog.new_paths``): each lane's vertex lands at its packet's
-largest count, and the walk reads slots never written.
+Inside a symbolic loop, with paths that start logging at different iterations and end at different lengths, so
+that the lanes of a packet hold different counts (the path loop's case: a path logs from its first guided vertex on),
+and more iterations than the log holds. It fails where a vertex is stored by its lane's count but walked by the
+iteration, where the walk misses a path's first vertex, and (by a crash) where a write past ``max_depth`` is not
+dropped.
 """
 
 import drjit as dr

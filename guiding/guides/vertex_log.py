@@ -97,12 +97,11 @@ class VertexLog:
         self._entry, self._cursor = _types(tuple(self.extra.items()))
 
     def new_paths(self, size: int):
-        """The loop state of ``size`` paths, none of their vertices logged yet.
+        """The loop state of ``size`` paths, none of their vertices logged yet: one value per lane of each field.
 
-        Every field is allocated at the full width, not as a scalar 0: Dr.Jit 1.5's CPU backend takes a local-memory
-        index whose variable has width 1 for the same in every lane of a packet (its largest), and the symbolic loop
-        keeps the width of a loop variable's initial value, so a scalar count, once the lanes' counts differ, wrote
-        every lane's vertex at the packet's largest count (tests/test_vertex_log.py)."""
+        Only the iteration indexes local memory: Dr.Jit 1.5's CPU backend takes an index of width 1 for the packet's
+        largest in its active lanes, which wrote every lane's vertex at the largest count while a per-lane count
+        indexed the log (README, "Fixed 2026-12-04"); every lane still in the loop is at the same iteration."""
         return self._cursor(entries=dr.alloc_local(self._entry, self.max_depth), step=dr.zeros(mi.UInt32, size),
                             first=dr.zeros(mi.UInt32, size), n=dr.zeros(mi.UInt32, size))
 
