@@ -12,7 +12,10 @@ weights), ``[+pdf]`` (the exact mixture density: the full sampler, nothing recor
 rendered, statistics off: the method's own row) and ``[+statistics]`` (its per-pass counters on; the benchmark's
 ``guided_per_ray`` comes from this variant); ``[bsdf paths]`` (the whole bounce computed and recorded, the path
 continued along the BSDF's sample: the guide's work at ``brdf``'s paths; its increment is over the method itself,
-minus what the guided paths themselves cost). Tree guides: ``[no record]`` (the method's own trees, as they
+minus what the guided paths themselves cost); ``[hot rows]`` (hemisphere samplers: the whole bounce, every vertex
+drawing from and reading densities in the first pair's alias row, which stays cached: its increment over the method
+itself is minus what the rows' cache misses cost; ``rays_per_path`` shows that its paths are about the method's).
+Tree guides: ``[no record]`` (the method's own trees, as they
 are at each pass, sampled by a kernel that records nothing) and ``[+record]``. The partial stages are a benchmark
 instrument (``GridParameters.profile_stage``): their images are not meant to be correct, and they learn their
 tables only in the warm-up passes.
@@ -88,10 +91,11 @@ GRID_STAGES = [("classify", "[classify]", {"profile_stage": "classify"}),
                ("+pdf", "[+pdf]", {"profile_stage": "pdf"}),
                ("+record", "", None),
                ("+statistics", "[+statistics]", {"statistics": True}),
-               ("bsdf paths", "[bsdf paths]", {"profile_stage": "bsdf_paths"})]
+               ("bsdf paths", "[bsdf paths]", {"profile_stage": "bsdf_paths"}),
+               ("hot rows", "[hot rows]", {"profile_stage": "hot_rows"})]
 #: Stages that are not a step of the sequence: their increment is over the method itself (for ``bsdf paths``, minus
-#: what the guided paths themselves cost).
-OUTSIDE_SEQUENCE = {"bsdf paths"}
+#: what the guided paths themselves cost; for ``hot rows``, minus what the alias rows' cache misses cost).
+OUTSIDE_SEQUENCE = {"bsdf paths", "hot rows"}
 #: Tree guides' breakdown: the method's trees sampled without recording, then the guide itself.
 TREE_STAGES = [("no record", "[no record]", "view"), ("+record", "", None)]
 
@@ -167,7 +171,10 @@ def breakdown_variants(method: str, guide) -> list[tuple[str, str, object]]:
     if method == "brdf":
         return []
     variants = []
-    for stage, suffix, overrides in (GRID_STAGES if grid_parameters(method) is not None else TREE_STAGES):
+    parameters = grid_parameters(method)
+    for stage, suffix, overrides in (GRID_STAGES if parameters is not None else TREE_STAGES):
+        if stage == "hot rows" and not parameters.sampler.startswith("hemi"):
+            continue          # sphere_inv's rows are its cells': one cell's would draw below the surface half the time
         if overrides is None:
             variants.append((stage, method, None))
         elif overrides == "view":
@@ -217,7 +224,8 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
                 breakdown_rows.append({"scene": name, "method": method, "stage": stage, "integrator": variant,
                                        "kernel_ms_per_spp": 1e3 * cost, "ratio_to_brdf": cost / kernel_per_spp["brdf"],
                                        "increment_ms_per_spp": 1e3 * (cost - before),
-                                       "increment_ratio": (cost - before) / kernel_per_spp["brdf"]})
+                                       "increment_ratio": (cost - before) / kernel_per_spp["brdf"],
+                                       "rays_per_path": _rays_per_path(timed[variant])})
                 if stage not in OUTSIDE_SEQUENCE:
                     previous = cost
         for method, records in timed.items():
@@ -376,7 +384,11 @@ def bottleneck(row: pd.Series, column: str, breakdown: pd.DataFrame | None) -> s
             largest = stages.loc[stages["increment_ratio"].idxmax(), "stage"]
             parts = ", ".join(f"{stage} {increment:+.2f}" for stage, increment
                               in zip(stages["stage"], stages["increment_ratio"]))
-            return f"the bounce's parts, × brdf's time: {parts}; largest: {largest}"
+            hot = breakdown[(breakdown["scene"] == row["scene"]) & (breakdown["method"] == row["method"])
+                            & (breakdown["stage"] == "hot rows")]
+            misses = (f"; with the alias rows cached ({hot['integrator'].iloc[0]}): "
+                      f"{hot['increment_ratio'].iloc[0]:+.2f}" if len(hot) else "")
+            return f"the bounce's parts, × brdf's time: {parts}; largest: {largest}{misses}"
     if column == "update_share":
         return (f"the update: {row['update_ms']:.1f} ms per pass ({int(row['memo_pairs'])} visited pairs), the "
                 f"pass's kernels {row['kernel_ms_per_spp']:.1f} ms per spp")
@@ -386,6 +398,10 @@ def bottleneck(row: pd.Series, column: str, breakdown: pd.DataFrame | None) -> s
     if column == "ratio_to_brdf":
         return "no cost breakdown in this run (--no-breakdown)"
     return "where the kernels' time goes: python -m guiding bench --part profile"
+
+
+def _rays_per_path(records: list[PassTiming]) -> float:
+    return sum(r.rays for r in records) / max(sum(r.paths for r in records), 1)
 
 
 def _resolution(scene: mi.Scene) -> str:

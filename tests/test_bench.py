@@ -32,6 +32,19 @@ def test_tree_breakdown_samples_the_methods_own_trees():
     assert method.guide.stats()["dtree_nodes_total"] > 4 * method.guide.stats()["dtree_trees"]
 
 
+def test_hot_rows_stage_only_where_the_sampler_reads_pairs_rows():
+    """``[hot rows]`` times the hemisphere samplers with every vertex on the first pair's row; ``sphere_inv`` draws
+    from its cells' rows over the whole sphere, where one cell's row would send half the paths below the surface, so
+    it has no such stage (and the instrument refuses it)."""
+    def stages(method):
+        return [stage for stage, _, _ in breakdown_variants(method, None)]
+
+    assert "hot rows" in stages("ours") and "hot rows" in stages("sarsa-hemi_inv")
+    assert "hot rows" not in stages("sarsa-sphere_inv")
+    with pytest.raises(ValueError, match="hemisphere samplers"):
+        make_guide("sarsa-sphere_inv", profile_stage="hot_rows")
+
+
 def test_breakdown_table_shape():
     frame, breakdown = benchmark([("glossy-box", 1 / 16)], ["ours", "sdtree"], passes=1, pass_spp=1, max_depth=4)
     assert list(frame["method"]) == ["path", TRACE_ONLY, "brdf", "ours", "sdtree"]
@@ -174,7 +187,8 @@ def test_a_guided_kernel_holds_more_instructions_than_brdfs():
 
 def test_a_missed_target_names_the_part_of_the_bounce_its_time_goes_to():
     """The Targets table names, for a missed cost ratio, the stages of the same run's breakdown up to the method
-    itself (not the instruments after it) and the largest of them; for the update share, the update's time."""
+    itself (not the instruments after it) and the largest of them, and what the method saves with its alias rows
+    cached; for the update share, the update's time."""
     frame = pd.DataFrame([
         {"scene": "box", "method": "brdf", "ratio_to_brdf": 1.0, "nothing_to_guide": False, "update_share": 0.0,
          "share_of_trace_limit": 0.7, "ratio_to_path": 0.9, "refine_share": 0.0},
@@ -182,7 +196,7 @@ def test_a_missed_target_names_the_part_of_the_bounce_its_time_goes_to():
          "update_ms": 12.5, "memo_pairs": 400, "kernel_ms_per_spp": 30.0, "share_of_trace_limit": 0.5,
          "ratio_to_path": 1.3, "refine_share": 0.0}])
     increments = {"classify": 0.1, "+sample": 0.2, "+pdf": 0.05, "+record": 0.15, "+statistics": 0.9,
-                  "bsdf paths": 0.95}
+                  "bsdf paths": 0.95, "hot rows": -0.125}
     breakdown = pd.DataFrame([{"scene": "box", "method": "ours", "stage": stage,
                                "integrator": "ours" if stage == "+record" else f"ours[{stage}]",
                                "increment_ratio": increment} for stage, increment in increments.items()])
@@ -190,7 +204,8 @@ def test_a_missed_target_names_the_part_of_the_bounce_its_time_goes_to():
     ratio = targets.loc["`ours` ≤ 1.2× `brdf` per spp (CPU)"]
     assert not ratio["met"]
     assert ratio["bottleneck"] == ("the bounce's parts, × brdf's time: classify +0.10, +sample +0.20, +pdf +0.05, "
-                                   "+record +0.15; largest: +sample")
+                                   "+record +0.15; largest: +sample; with the alias rows cached (ours[hot rows]): "
+                                   "-0.12")
     update = targets.loc["grid update ≤ 2 % of pass time (`ours`)"]
     assert "12.5 ms per pass (400 visited pairs)" in update["bottleneck"]
     assert targets.loc["`brdf` ≤ 1.0× Mitsuba `path` per spp", "bottleneck"] == ""

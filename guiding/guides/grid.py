@@ -48,7 +48,7 @@ from .base import Guide, UpdateResult, rgb_mean
 from . import alias_rows
 from .lambertian import LambertianBsdfs, LambertianVertex
 from .grid_record import IN_BIN_PROPOSALS, PairMemo, RadianceRecord, table_needs
-from .parameters import (PROFILE_BSDF_PATHS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
+from .parameters import (PROFILE_BSDF_PATHS, PROFILE_HOT_ROWS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
                          with_overrides)
 from .vertex_log import NO_RECORD, VertexLog, known_or_found, walk_backward
 
@@ -140,6 +140,7 @@ class GridGuide(Guide):
         #: Benchmark instrument: how far the bounce goes (index into PROFILE_STAGES; len = the whole guide).
         self._stage = PROFILE_STAGES.index(p.profile_stage) if p.profile_stage in PROFILE_STAGES else len(PROFILE_STAGES)
         self._bsdf_paths = p.profile_stage == PROFILE_BSDF_PATHS
+        self._hot_rows = p.profile_stage == PROFILE_HOT_ROWS
         self._updates = 0
         self.rebuild_growth = p.rebuild_growth
         self._rebuilt_at = 0           # spp done at the record's last rebuild
@@ -380,8 +381,16 @@ class GridGuide(Guide):
         table = self.record_table
         k = fine_bin // table.fine if table.refinement else fine_bin
         if self.sampler == "sphere_inv":
-            return table.cell_density(vertex.cell, k, active)
-        return table.hemi_density(vertex.pair, vertex.memo.row, k, active)
+            return table.cell_density(self._row(vertex), k, active)
+        return table.hemi_density(vertex.pair, self._row(vertex), k, active)
+
+    def _row(self, vertex) -> mi.UInt32:
+        """The alias row the vertex draws from and reads densities in: its pair's (its cell's for ``sphere_inv``),
+        or with the benchmark instrument ``hot_rows`` (hemisphere samplers) the first pair's
+        (:data:`~.parameters.PROFILE_HOT_ROWS`)."""
+        if self.sampler == "sphere_inv":
+            return vertex.cell
+        return mi.UInt32(0) if self._hot_rows else vertex.memo.row
 
     def _mixture_pdf(self, vertex, world: mi.Vector3f, bsdf_pdf: mi.Float, chosen_bin=None,
                      bin_density=None) -> mi.Float:
@@ -426,9 +435,9 @@ class GridGuide(Guide):
         table = self.record_table
         u = sampler.next_2d(active)
         if self.sampler == "sphere_inv":
-            k, density = alias_rows.sample(table.cell_alias, vertex.cell, table.bins.count, u, active)
+            k, density = alias_rows.sample(table.cell_alias, self._row(vertex), table.bins.count, u, active)
         else:
-            k, density = table.hemi_sample(vertex.pair, vertex.memo.row, u, active)
+            k, density = table.hemi_sample(vertex.pair, self._row(vertex), u, active)
         return table.bins.sample(k, sampler.next_2d(active)), k, density
 
     def _sample_rejection(self, sampler, vertex, searching) -> tuple[mi.Vector3f, mi.UInt32 | None, mi.Float | None,
@@ -439,7 +448,7 @@ class GridGuide(Guide):
         centre = vertex.centre
         k = density = None
         if self.proposal == "bins":
-            k, density = table.hemi_sample(vertex.pair, vertex.memo.row, sampler.next_2d(searching), searching)
+            k, density = table.hemi_sample(vertex.pair, self._row(vertex), sampler.next_2d(searching), searching)
             if table.refinement:
                 entry = vertex.cell * table.bins.count + k
                 refined = table.refinement.sampled(entry, searching)

@@ -30,6 +30,11 @@ PROFILE_TRAINING_PASSES = 2
 #: the BSDF's own sample, so that its cost is the guide's work at ``brdf``'s paths, apart from what the guided paths
 #: themselves cost (they differ in length and in where they go).
 PROFILE_BSDF_PATHS = "bsdf_paths"
+#: Benchmark instrument (``profile_stage``, hemisphere samplers): the whole bounce computed and recorded, but every
+#: vertex draws from and looks densities up in the first pair's alias row, a few KiB that stay in the core's cache,
+#: instead of its own pair's: what the rows' cache misses cost the bounce. Its images are not meant to be correct (a
+#: draw from another pair's distribution over the vertex's own hemisphere bins: paths about as long as the method's).
+PROFILE_HOT_ROWS = "hot_rows"
 
 #: Least BSDF share of the rejection samplers (see :mod:`guiding.guides.grid`): it bounds hemi_rej's weight by 5·ρ
 #: per bounce (measured at door-ajar's vertices, results/bounce_weights.md: second moment 1.6·ρ², against 1.8 at 0.1
@@ -121,7 +126,8 @@ class GridParameters:
         ``update()`` report ``guided_samples``, ``invalid_share``, ``acceptance_rate`` and
         ``proposals_per_sample``. They never touch the image.
       profile_stage: None (the guide), one of :data:`PROFILE_STAGES` (a benchmark instrument that switches the
-        bounce's later parts off) or :data:`PROFILE_BSDF_PATHS`; their images are not meant to be correct.
+        bounce's later parts off), :data:`PROFILE_BSDF_PATHS` or :data:`PROFILE_HOT_ROWS`; their images are not meant to
+        be correct.
     """
 
     spatial_resolution: int = 8
@@ -168,9 +174,12 @@ class GridParameters:
         _check(0 < self.refine_share <= 1, f"refine_share must be in (0, 1], got {self.refine_share}")
         _check(self.rebuild_growth >= 0, f"rebuild_growth must be >= 0, got {self.rebuild_growth}")
         _check(self.refine_capacity >= 1, f"refine_capacity must be >= 1, got {self.refine_capacity}")
-        _check(self.profile_stage in (None, *PROFILE_STAGES, PROFILE_BSDF_PATHS),
+        _check(self.profile_stage in (None, *PROFILE_STAGES, PROFILE_BSDF_PATHS, PROFILE_HOT_ROWS),
                f"unknown profile stage '{self.profile_stage}' (choose from "
-               f"{', '.join((*PROFILE_STAGES, PROFILE_BSDF_PATHS))})")
+               f"{', '.join((*PROFILE_STAGES, PROFILE_BSDF_PATHS, PROFILE_HOT_ROWS))})")
+        _check(self.profile_stage != PROFILE_HOT_ROWS or self.sampler.startswith("hemi"),
+               f"profile stage '{PROFILE_HOT_ROWS}' reads the pairs' rows of the hemisphere samplers, not "
+               f"{self.sampler}'s")
 
 
 @dataclass(frozen=True)
