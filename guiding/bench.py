@@ -12,9 +12,10 @@ weights), ``[+pdf]`` (the exact mixture density: the full sampler, nothing recor
 rendered, statistics off: the method's own row) and ``[+statistics]`` (its per-pass counters on; the benchmark's
 ``guided_per_ray`` comes from this variant); ``[bsdf paths]`` (the whole bounce computed and recorded, the path
 continued along the BSDF's sample: the guide's work at ``brdf``'s paths; its increment is over the method itself,
-minus what the guided paths themselves cost); ``[hot rows]`` (hemisphere samplers: the whole bounce, every vertex
-drawing from and reading densities in the first pair's alias row, which stays cached: its increment over the method
-itself is minus what the rows' cache misses cost; ``rays_per_path`` shows that its paths are about the method's).
+minus what the guided paths themselves cost); ``[hot rows]`` (the rejection samplers' ``bins`` proposal: the whole
+bounce, every vertex drawing from and reading densities in the first pair's alias row, which stays cached: its
+increment over the method itself is minus what the rows' cache misses cost; ``rays_per_path`` shows how far its paths
+are from the method's, and a missed target's bottleneck gives the change per ray too).
 Tree guides: ``[no record]`` (the method's own trees, as they
 are at each pass, sampled by a kernel that records nothing) and ``[+record]``. The partial stages are a benchmark
 instrument (``GridParameters.profile_stage``): their images are not meant to be correct, and they learn their
@@ -173,8 +174,8 @@ def breakdown_variants(method: str, guide) -> list[tuple[str, str, object]]:
     variants = []
     parameters = grid_parameters(method)
     for stage, suffix, overrides in (GRID_STAGES if parameters is not None else TREE_STAGES):
-        if stage == "hot rows" and not parameters.sampler.startswith("hemi"):
-            continue          # sphere_inv's rows are its cells': one cell's would draw below the surface half the time
+        if stage == "hot rows" and not parameters.draws_rows_by_rejection:
+            continue          # another row's bins, taken without rejection, lie below the surface: shorter paths
         if overrides is None:
             variants.append((stage, method, None))
         elif overrides == "view":
@@ -386,8 +387,13 @@ def bottleneck(row: pd.Series, column: str, breakdown: pd.DataFrame | None) -> s
                               in zip(stages["stage"], stages["increment_ratio"]))
             hot = breakdown[(breakdown["scene"] == row["scene"]) & (breakdown["method"] == row["method"])
                             & (breakdown["stage"] == "hot rows")]
-            misses = (f"; with the alias rows cached ({hot['integrator'].iloc[0]}): "
-                      f"{hot['increment_ratio'].iloc[0]:+.2f}" if len(hot) else "")
+            misses = ""
+            if len(hot):
+                cached, own = hot.iloc[0], stages.iloc[-1]
+                per_ray = ((cached["ratio_to_brdf"] / cached["rays_per_path"])
+                           / (own["ratio_to_brdf"] / own["rays_per_path"]))
+                misses = (f"; with the alias rows cached ({cached['integrator']}): {cached['increment_ratio']:+.2f}, "
+                          f"{per_ray - 1:+.0%} per ray")
             return f"the bounce's parts, × brdf's time: {parts}; largest: {largest}{misses}"
     if column == "update_share":
         return (f"the update: {row['update_ms']:.1f} ms per pass ({int(row['memo_pairs'])} visited pairs), the "

@@ -32,17 +32,19 @@ def test_tree_breakdown_samples_the_methods_own_trees():
     assert method.guide.stats()["dtree_nodes_total"] > 4 * method.guide.stats()["dtree_trees"]
 
 
-def test_hot_rows_stage_only_where_the_sampler_reads_pairs_rows():
-    """``[hot rows]`` times the hemisphere samplers with every vertex on the first pair's row; ``sphere_inv`` draws
-    from its cells' rows over the whole sphere, where one cell's row would send half the paths below the surface, so
-    it has no such stage (and the instrument refuses it)."""
+def test_hot_rows_stage_only_where_a_drawn_bin_is_tried_by_rejection():
+    """``[hot rows]`` times the rejection samplers' bins proposal with every vertex on the first pair's row, whose
+    bins below the vertex's normal bin the in-bin rejection refuses; the inversion samplers would take them (paths
+    below the surface, a third shorter), so they have no such stage, and the instrument refuses them."""
     def stages(method):
         return [stage for stage, _, _ in breakdown_variants(method, None)]
 
-    assert "hot rows" in stages("ours") and "hot rows" in stages("sarsa-hemi_inv")
-    assert "hot rows" not in stages("sarsa-sphere_inv")
-    with pytest.raises(ValueError, match="hemisphere samplers"):
-        make_guide("sarsa-sphere_inv", profile_stage="hot_rows")
+    assert all("hot rows" in stages(method) for method in ("ours", "ours-expected", "ours-plus"))
+    assert all("hot rows" not in stages(method) for method in ("sarsa-hemi_inv", "sarsa-sphere_inv",
+                                                               "ours-uniform-proposals"))
+    for method in ("sarsa-hemi_inv", "ours-uniform-proposals"):
+        with pytest.raises(ValueError, match="bins proposal"):
+            make_guide(method, profile_stage="hot_rows")
 
 
 def test_breakdown_table_shape():
@@ -195,17 +197,19 @@ def test_a_missed_target_names_the_part_of_the_bounce_its_time_goes_to():
         {"scene": "box", "method": "ours", "ratio_to_brdf": 1.5, "nothing_to_guide": False, "update_share": 0.05,
          "update_ms": 12.5, "memo_pairs": 400, "kernel_ms_per_spp": 30.0, "share_of_trace_limit": 0.5,
          "ratio_to_path": 1.3, "refine_share": 0.0}])
-    increments = {"classify": 0.1, "+sample": 0.2, "+pdf": 0.05, "+record": 0.15, "+statistics": 0.9,
-                  "bsdf paths": 0.95, "hot rows": -0.125}
+    stages = [("classify", 1.1, 0.1), ("+sample", 1.3, 0.2), ("+pdf", 1.35, 0.05), ("+record", 1.5, 0.15),
+              ("+statistics", 2.4, 0.9), ("bsdf paths", 2.45, 0.95), ("hot rows", 1.375, -0.125)]
     breakdown = pd.DataFrame([{"scene": "box", "method": "ours", "stage": stage,
                                "integrator": "ours" if stage == "+record" else f"ours[{stage}]",
-                               "increment_ratio": increment} for stage, increment in increments.items()])
+                               "ratio_to_brdf": ratio, "increment_ratio": increment,
+                               "rays_per_path": 5.5 if stage == "hot rows" else 5.0}
+                              for stage, ratio, increment in stages])
     targets = target_table(frame, "cpu", breakdown).set_index("target")
     ratio = targets.loc["`ours` ≤ 1.2× `brdf` per spp (CPU)"]
     assert not ratio["met"]
     assert ratio["bottleneck"] == ("the bounce's parts, × brdf's time: classify +0.10, +sample +0.20, +pdf +0.05, "
                                    "+record +0.15; largest: +sample; with the alias rows cached (ours[hot rows]): "
-                                   "-0.12")
+                                   "-0.12, -17% per ray")
     update = targets.loc["grid update ≤ 2 % of pass time (`ours`)"]
     assert "12.5 ms per pass (400 visited pairs)" in update["bottleneck"]
     assert targets.loc["`brdf` ≤ 1.0× Mitsuba `path` per spp", "bottleneck"] == ""

@@ -386,8 +386,7 @@ class GridGuide(Guide):
 
     def _row(self, vertex) -> mi.UInt32:
         """The alias row the vertex draws from and reads densities in: its pair's (its cell's for ``sphere_inv``),
-        or with the benchmark instrument ``hot_rows`` (hemisphere samplers) the first pair's
-        (:data:`~.parameters.PROFILE_HOT_ROWS`)."""
+        or with the benchmark instrument ``hot_rows`` the first pair's (:data:`~.parameters.PROFILE_HOT_ROWS`)."""
         if self.sampler == "sphere_inv":
             return vertex.cell
         return mi.UInt32(0) if self._hot_rows else vertex.memo.row

@@ -30,10 +30,12 @@ PROFILE_TRAINING_PASSES = 2
 #: the BSDF's own sample, so that its cost is the guide's work at ``brdf``'s paths, apart from what the guided paths
 #: themselves cost (they differ in length and in where they go).
 PROFILE_BSDF_PATHS = "bsdf_paths"
-#: Benchmark instrument (``profile_stage``, hemisphere samplers): the whole bounce computed and recorded, but every
-#: vertex draws from and looks densities up in the first pair's alias row, a few KiB that stay in the core's cache,
-#: instead of its own pair's: what the rows' cache misses cost the bounce. Its images are not meant to be correct (a
-#: draw from another pair's distribution over the vertex's own hemisphere bins: paths about as long as the method's).
+#: Benchmark instrument (``profile_stage``, the rejection samplers' ``bins`` proposal): the whole bounce computed and
+#: recorded, but every vertex draws from and looks densities up in the first pair's alias row, a few KiB that stay in
+#: the core's cache, instead of its own pair's: what the rows' cache misses cost the bounce. Its images are not meant
+#: to be correct; its paths are about as long as the method's, since a bin of the other pair's row that lies below
+#: the vertex's normal bin is rejected, and the BSDF's direction taken (``hemi_inv`` would take it: its paths were a
+#: third shorter).
 PROFILE_HOT_ROWS = "hot_rows"
 
 #: Least BSDF share of the rejection samplers (see :mod:`guiding.guides.grid`): it bounds hemi_rej's weight by 5·ρ
@@ -149,6 +151,12 @@ class GridParameters:
     statistics: bool = False
     profile_stage: str | None = None
 
+    @property
+    def draws_rows_by_rejection(self) -> bool:
+        """Whether the sampler draws a bin from its pair's alias row, then a direction in it by rejection (the
+        rejection samplers' ``bins`` proposal): what the ``hot_rows`` instrument applies to."""
+        return self.sampler.startswith("hemi_rej") and self.proposal == "bins"
+
     def __post_init__(self):
         _check(self.rule in RULES, f"unknown learning rule '{self.rule}' (choose from {', '.join(RULES)})")
         _check(self.sampler in SAMPLERS, f"unknown sampler '{self.sampler}' (choose from {', '.join(SAMPLERS)})")
@@ -177,9 +185,9 @@ class GridParameters:
         _check(self.profile_stage in (None, *PROFILE_STAGES, PROFILE_BSDF_PATHS, PROFILE_HOT_ROWS),
                f"unknown profile stage '{self.profile_stage}' (choose from "
                f"{', '.join((*PROFILE_STAGES, PROFILE_BSDF_PATHS, PROFILE_HOT_ROWS))})")
-        _check(self.profile_stage != PROFILE_HOT_ROWS or self.sampler.startswith("hemi"),
-               f"profile stage '{PROFILE_HOT_ROWS}' reads the pairs' rows of the hemisphere samplers, not "
-               f"{self.sampler}'s")
+        _check(self.profile_stage != PROFILE_HOT_ROWS or self.draws_rows_by_rejection,
+               f"profile stage '{PROFILE_HOT_ROWS}' is for the rejection samplers' bins proposal, not "
+               f"{self.sampler} ({self.proposal})")
 
 
 @dataclass(frozen=True)
