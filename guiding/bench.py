@@ -167,6 +167,7 @@ class _SamplingOnly:
 def breakdown_variants(method: str, guide) -> list[tuple[str, str, object]]:
     """The breakdown of ``method`` whose own integrator has ``guide``: (stage, integrator name, guide or None for the
     method's own integrator)."""
+    from .guides.parameters import draws_bins_by_rejection
     from .methods import grid_parameters, make_guide
 
     if method == "brdf":
@@ -174,7 +175,7 @@ def breakdown_variants(method: str, guide) -> list[tuple[str, str, object]]:
     variants = []
     parameters = grid_parameters(method)
     for stage, suffix, overrides in (GRID_STAGES if parameters is not None else TREE_STAGES):
-        if stage == "hot rows" and not parameters.draws_rows_by_rejection:
+        if stage == "hot rows" and not draws_bins_by_rejection(parameters.sampler, parameters.proposal):
             continue          # another row's bins, taken without rejection, lie below the surface: shorter paths
         if overrides is None:
             variants.append((stage, method, None))
@@ -374,22 +375,22 @@ def target_table(frame: pd.DataFrame, device_kind: str, breakdown: pd.DataFrame 
 
 def bottleneck(row: pd.Series, column: str, breakdown: pd.DataFrame | None) -> str:
     """Where the time of a missed target goes, from the same run: for a cost ratio, the parts of the method's bounce
-    over ``brdf`` (its cost breakdown's stages up to the method itself, the largest named), for the update share the
-    update's (or the trees' rebuild's) time per pass against the pass's kernel time."""
+    over ``brdf`` (its cost breakdown's stages up to the method itself, the largest named) and, where it was timed,
+    what the ``hot rows`` stage saves (its increment, and per ray: its paths' lengths differ a little); for the
+    update share the update's (or the trees' rebuild's) time per pass against the pass's kernel time."""
     if column == "ratio_to_brdf" and breakdown is not None and not breakdown.empty:
-        stages = breakdown[(breakdown["scene"] == row["scene"]) & (breakdown["method"] == row["method"])]
-        stages = stages.reset_index(drop=True)
-        own = stages.index[stages["integrator"] == row["method"]]
-        stages = stages.iloc[: own[0] + 1] if len(own) else stages.iloc[:0]
+        rows = breakdown[(breakdown["scene"] == row["scene"]) & (breakdown["method"] == row["method"])]
+        rows = rows.reset_index(drop=True)
+        position = rows.index[rows["integrator"] == row["method"]]
+        stages = rows.iloc[: position[0] + 1] if len(position) else rows.iloc[:0]
         if not stages.empty:
             largest = stages.loc[stages["increment_ratio"].idxmax(), "stage"]
             parts = ", ".join(f"{stage} {increment:+.2f}" for stage, increment
                               in zip(stages["stage"], stages["increment_ratio"]))
-            hot = breakdown[(breakdown["scene"] == row["scene"]) & (breakdown["method"] == row["method"])
-                            & (breakdown["stage"] == "hot rows")]
+            hot, own = rows[rows["stage"] == "hot rows"], stages.iloc[-1]
             misses = ""
             if len(hot):
-                cached, own = hot.iloc[0], stages.iloc[-1]
+                cached = hot.iloc[0]
                 per_ray = ((cached["ratio_to_brdf"] / cached["rays_per_path"])
                            / (own["ratio_to_brdf"] / own["rays_per_path"]))
                 misses = (f"; with the alias rows cached ({cached['integrator']}): {cached['increment_ratio']:+.2f}, "

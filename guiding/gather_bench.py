@@ -61,4 +61,3 @@ def gathers_table(scenes: list[tuple[str, float]], methods: list[str], passes: i
                              "ratio_to_brdf_gathers": gathers / per_spp["brdf"],
                              "ratio_to_brdf_scalar_loads": loads / per_spp["brdf" + SCALAR_LOADS]})
     return pd.DataFrame(rows)
-

@@ -47,6 +47,50 @@ def test_hot_rows_stage_only_where_a_drawn_bin_is_tried_by_rejection():
             make_guide(method, profile_stage="hot_rows")
 
 
+def test_hot_rows_instrument_draws_and_looks_up_in_the_first_row():
+    """With ``hot_rows``, a vertex whose pair has another row draws its bin from the first pair's row and reads the
+    density of any bin there (the two reads the stage times); the guide itself reads its pair's own row. Two pairs of
+    one cell with different normals: two rows of different distributions."""
+    import drjit as dr
+    import mitsuba as mi
+    import numpy as np
+
+    from guiding.guides.grid import GridGuide, _Vertex
+
+    guides = {stage: GridGuide(spatial_resolution=2, directional_resolution=4, rule="sarsa", sampler="hemi_rej_plus",
+                               proposal="bins", profile_stage=stage) for stage in (None, "hot_rows")}
+    table = guides[None].record_table
+    table.set_bounds(mi.BoundingBox3f(mi.ScalarPoint3f(0), mi.ScalarPoint3f(1)))
+    B = table.bins.count
+    q = np.zeros(table.cells * B)
+    q[:B] = np.random.default_rng(5).uniform(0, 10, B)
+    table.acc_sum, table.acc_count = mi.Float64(q), mi.Float64(np.ones_like(q))
+    pairs = table.pair(mi.UInt32(0, 0), mi.Vector3f([0, 0], [0, 1], [1, 0]))
+    dr.scatter(table.visited, mi.UInt32(1), pairs)
+    guides[None].update(spp_done=150)
+    guides["hot_rows"].record_table = table
+
+    lanes = 4096
+    second = int(np.argmax(np.array(table.memo(pairs, True).row)))      # the pair whose row is not the first
+    pair = dr.gather(mi.UInt32, pairs, dr.full(mi.UInt32, second, lanes))
+    memo = table.memo(pair, True)
+    assert np.all(np.array(memo.row) == 1)
+    vertex = _Vertex(guided=mi.Bool(True), cell=mi.UInt32(0), side=mi.Float(1), pair=pair, memo=memo,
+                     centre=table.normal_bins.normal(pair % table.normal_bins.count))
+    k = dr.arange(mi.UInt32, lanes) % B
+    drawn = {}
+    for stage, guide in guides.items():
+        row = mi.UInt32(0) if stage else memo.row
+        np.testing.assert_array_equal(guide._bin_density(vertex, k, True), table.hemi_density(pair, row, k, True))
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(1, lanes)
+        _, bins, density, _ = guide._sample_rejection(sampler, vertex, mi.Bool(True))
+        np.testing.assert_array_equal(density, table.hemi_density(pair, row, bins, True))
+        drawn[stage] = np.array(bins)
+    assert not np.array_equal(table.hemi_density(pair, 0, k, True), table.hemi_density(pair, 1, k, True))
+    assert not np.array_equal(drawn[None], drawn["hot_rows"])
+
+
 def test_breakdown_table_shape():
     frame, breakdown = benchmark([("glossy-box", 1 / 16)], ["ours", "sdtree"], passes=1, pass_spp=1, max_depth=4)
     assert list(frame["method"]) == ["path", TRACE_ONLY, "brdf", "ours", "sdtree"]

@@ -381,14 +381,12 @@ class GridGuide(Guide):
         table = self.record_table
         k = fine_bin // table.fine if table.refinement else fine_bin
         if self.sampler == "sphere_inv":
-            return table.cell_density(self._row(vertex), k, active)
-        return table.hemi_density(vertex.pair, self._row(vertex), k, active)
+            return table.cell_density(vertex.cell, k, active)
+        return table.hemi_density(vertex.pair, self._pair_row(vertex), k, active)
 
-    def _row(self, vertex) -> mi.UInt32:
-        """The alias row the vertex draws from and reads densities in: its pair's (its cell's for ``sphere_inv``),
-        or with the benchmark instrument ``hot_rows`` the first pair's (:data:`~.parameters.PROFILE_HOT_ROWS`)."""
-        if self.sampler == "sphere_inv":
-            return vertex.cell
+    def _pair_row(self, vertex) -> mi.UInt32:
+        """The row of ``hemi_alias`` the vertex draws from and reads densities in: its pair's, or with the benchmark
+        instrument ``hot_rows`` the first pair's (:data:`~.parameters.PROFILE_HOT_ROWS`)."""
         return mi.UInt32(0) if self._hot_rows else vertex.memo.row
 
     def _mixture_pdf(self, vertex, world: mi.Vector3f, bsdf_pdf: mi.Float, chosen_bin=None,
@@ -434,9 +432,9 @@ class GridGuide(Guide):
         table = self.record_table
         u = sampler.next_2d(active)
         if self.sampler == "sphere_inv":
-            k, density = alias_rows.sample(table.cell_alias, self._row(vertex), table.bins.count, u, active)
+            k, density = alias_rows.sample(table.cell_alias, vertex.cell, table.bins.count, u, active)
         else:
-            k, density = table.hemi_sample(vertex.pair, self._row(vertex), u, active)
+            k, density = table.hemi_sample(vertex.pair, self._pair_row(vertex), u, active)
         return table.bins.sample(k, sampler.next_2d(active)), k, density
 
     def _sample_rejection(self, sampler, vertex, searching) -> tuple[mi.Vector3f, mi.UInt32 | None, mi.Float | None,
@@ -447,7 +445,7 @@ class GridGuide(Guide):
         centre = vertex.centre
         k = density = None
         if self.proposal == "bins":
-            k, density = table.hemi_sample(vertex.pair, self._row(vertex), sampler.next_2d(searching), searching)
+            k, density = table.hemi_sample(vertex.pair, self._pair_row(vertex), sampler.next_2d(searching), searching)
             if table.refinement:
                 entry = vertex.cell * table.bins.count + k
                 refined = table.refinement.sampled(entry, searching)

@@ -40,7 +40,7 @@ from ..errors import GuidingError
 from . import alias_rows
 from .grid_cells import GridCells
 from .grid_refinement import BinRefinement
-from .parameters import MIN_EXPLORATION
+from .parameters import MIN_EXPLORATION, draws_bins_by_rejection
 from .pass_sums import add_target, entry_sums, footprint, pass_sums, planned_footprint
 
 #: Added to Q before normalising, so that no bin has zero probability (method.md §4).
@@ -93,7 +93,7 @@ def table_needs(rule: str, sampler: str, proposal: str) -> dict[str, bool]:
     """The tables a grid guide with this rule, sampler and proposal needs (the ``needs_*`` arguments of
     :class:`RadianceRecord`): the cells' alias tables for sphere_inv, the memo tables for the hemisphere samplers,
     the per-pair alias tables for hemi_inv and for the rejection samplers' ``bins`` proposal, V for Expected SARSA."""
-    in_bin = sampler.startswith("hemi_rej") and proposal == "bins"
+    in_bin = draws_bins_by_rejection(sampler, proposal)
     return {"needs_cell_alias": sampler == "sphere_inv", "needs_memo": sampler.startswith("hemi"),
             "needs_hemi_alias": sampler == "hemi_inv" or in_bin, "needs_in_bin": in_bin,
             "needs_value": rule == "expected_sarsa"}

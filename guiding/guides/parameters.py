@@ -77,6 +77,12 @@ def default_proposal(sampler: str) -> str:
     return "bins" if sampler == "hemi_rej_plus" else "uniform"
 
 
+def draws_bins_by_rejection(sampler: str, proposal: str) -> bool:
+    """Whether a sampler draws a bin from its pair's alias row, then a direction in it by rejection (the rejection
+    samplers' ``bins`` proposal): the samplers with in-bin tables, refined bins and the ``hot_rows`` instrument."""
+    return sampler.startswith("hemi_rej") and proposal == "bins"
+
+
 def _check(condition: bool, message: str) -> None:
     if not condition:
         raise ValueError(message)
@@ -151,12 +157,6 @@ class GridParameters:
     statistics: bool = False
     profile_stage: str | None = None
 
-    @property
-    def draws_rows_by_rejection(self) -> bool:
-        """Whether the sampler draws a bin from its pair's alias row, then a direction in it by rejection (the
-        rejection samplers' ``bins`` proposal): what the ``hot_rows`` instrument applies to."""
-        return self.sampler.startswith("hemi_rej") and self.proposal == "bins"
-
     def __post_init__(self):
         _check(self.rule in RULES, f"unknown learning rule '{self.rule}' (choose from {', '.join(RULES)})")
         _check(self.sampler in SAMPLERS, f"unknown sampler '{self.sampler}' (choose from {', '.join(SAMPLERS)})")
@@ -176,7 +176,7 @@ class GridParameters:
                f"unknown guided_bsdfs '{self.guided_bsdfs}' (choose from {', '.join(GUIDED_BSDFS)})")
         _check(0 < self.smooth_bsdf_share < 1, f"smooth_bsdf_share must be in (0, 1), got {self.smooth_bsdf_share}")
         _check(1 <= self.sub_resolution <= 16, f"sub_resolution must be in 1..16, got {self.sub_resolution}")
-        _check(self.sub_resolution == 1 or (self.sampler.startswith("hemi_rej") and self.proposal == "bins"),
+        _check(self.sub_resolution == 1 or draws_bins_by_rejection(self.sampler, self.proposal),
                f"sub_resolution > 1 refines the bins proposal of the rejection samplers, not {self.sampler} "
                f"({self.proposal})")
         _check(0 < self.refine_share <= 1, f"refine_share must be in (0, 1], got {self.refine_share}")
@@ -185,7 +185,7 @@ class GridParameters:
         _check(self.profile_stage in (None, *PROFILE_STAGES, PROFILE_BSDF_PATHS, PROFILE_HOT_ROWS),
                f"unknown profile stage '{self.profile_stage}' (choose from "
                f"{', '.join((*PROFILE_STAGES, PROFILE_BSDF_PATHS, PROFILE_HOT_ROWS))})")
-        _check(self.profile_stage != PROFILE_HOT_ROWS or self.draws_rows_by_rejection,
+        _check(self.profile_stage != PROFILE_HOT_ROWS or draws_bins_by_rejection(self.sampler, self.proposal),
                f"profile stage '{PROFILE_HOT_ROWS}' is for the rejection samplers' bins proposal, not "
                f"{self.sampler} ({self.proposal})")
 
