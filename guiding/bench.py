@@ -14,8 +14,9 @@ rendered, statistics off: the method's own row) and ``[+statistics]`` (its per-p
 continued along the BSDF's sample: the guide's work at ``brdf``'s paths; its increment is over the method itself,
 minus what the guided paths themselves cost); ``[hot rows]`` (the rejection samplers' ``bins`` proposal: the whole
 bounce, every vertex drawing from and reading densities in the first pair's alias row, which stays cached: its
-increment over the method itself is minus what the rows' cache misses cost; ``rays_per_path`` shows how far its paths
-are from the method's, and a missed target's bottleneck gives the change per ray too).
+increment over the method itself is minus what the rows' cache misses cost, together with what drawing every
+vertex's directions from one distribution changes (README, "The `[hot rows]` stage"); ``rays_per_path`` shows how far
+its paths are from the method's, and a missed target's bottleneck gives the change per ray too).
 Tree guides: ``[no record]`` (the method's own trees, as they
 are at each pass, sampled by a kernel that records nothing) and ``[+record]``. The partial stages are a benchmark
 instrument (``GridParameters.profile_stage``): their images are not meant to be correct, and they learn their
@@ -95,7 +96,8 @@ GRID_STAGES = [("classify", "[classify]", {"profile_stage": "classify"}),
                ("bsdf paths", "[bsdf paths]", {"profile_stage": "bsdf_paths"}),
                ("hot rows", "[hot rows]", {"profile_stage": "hot_rows"})]
 #: Stages that are not a step of the sequence: their increment is over the method itself (for ``bsdf paths``, minus
-#: what the guided paths themselves cost; for ``hot rows``, minus what the alias rows' cache misses cost).
+#: what the guided paths themselves cost; for ``hot rows``, minus what the alias rows' cache misses and the paths'
+#: own directions cost).
 OUTSIDE_SEQUENCE = {"bsdf paths", "hot rows"}
 #: Tree guides' breakdown: the method's trees sampled without recording, then the guide itself.
 TREE_STAGES = [("no record", "[no record]", "view"), ("+record", "", None)]
@@ -393,7 +395,7 @@ def bottleneck(row: pd.Series, column: str, breakdown: pd.DataFrame | None) -> s
                 cached = hot.iloc[0]
                 per_ray = ((cached["ratio_to_brdf"] / cached["rays_per_path"])
                            / (own["ratio_to_brdf"] / own["rays_per_path"]))
-                misses = (f"; with the alias rows cached ({cached['integrator']}): {cached['increment_ratio']:+.2f}, "
+                misses = (f"; with one alias row for all ({cached['integrator']}): {cached['increment_ratio']:+.2f}, "
                           f"{per_ray - 1:+.0%} per ray")
             return f"the bounce's parts, × brdf's time: {parts}; largest: {largest}{misses}"
     if column == "update_share":

@@ -233,8 +233,8 @@ def test_a_guided_kernel_holds_more_instructions_than_brdfs():
 
 def test_a_missed_target_names_the_part_of_the_bounce_its_time_goes_to():
     """The Targets table names, for a missed cost ratio, the stages of the same run's breakdown up to the method
-    itself (not the instruments after it) and the largest of them, and what the method saves with its alias rows
-    cached; for the update share, the update's time."""
+    itself (not the instruments after it) and the largest of them, and what the method saves with one alias row
+    for all its vertices; for the update share, the update's time."""
     frame = pd.DataFrame([
         {"scene": "box", "method": "brdf", "ratio_to_brdf": 1.0, "nothing_to_guide": False, "update_share": 0.0,
          "share_of_trace_limit": 0.7, "ratio_to_path": 0.9, "refine_share": 0.0},
@@ -252,7 +252,7 @@ def test_a_missed_target_names_the_part_of_the_bounce_its_time_goes_to():
     ratio = targets.loc["`ours` ≤ 1.2× `brdf` per spp (CPU)"]
     assert not ratio["met"]
     assert ratio["bottleneck"] == ("the bounce's parts, × brdf's time: classify +0.10, +sample +0.20, +pdf +0.05, "
-                                   "+record +0.15; largest: +sample; with the alias rows cached (ours[hot rows]): "
+                                   "+record +0.15; largest: +sample; with one alias row for all (ours[hot rows]): "
                                    "-0.12, -17% per ray")
     update = targets.loc["grid update ≤ 2 % of pass time (`ours`)"]
     assert "12.5 ms per pass (400 visited pairs)" in update["bottleneck"]

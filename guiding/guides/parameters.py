@@ -32,8 +32,9 @@ PROFILE_TRAINING_PASSES = 2
 PROFILE_BSDF_PATHS = "bsdf_paths"
 #: Benchmark instrument (``profile_stage``, the rejection samplers' ``bins`` proposal): the whole bounce computed and
 #: recorded, but every vertex draws from and looks densities up in the first pair's alias row, a few KiB that stay in
-#: the core's cache, instead of its own pair's: what the rows' cache misses cost the bounce. Its images are not meant
-#: to be correct; its paths are about as long as the method's, since a bin of the other pair's row that lies below
+#: the core's cache, instead of its own pair's: what the rows' cache misses cost the bounce, and what drawing every
+#: vertex's directions from one distribution changes (a part of its gain, README). Its images are not meant to be
+#: correct; its paths are about as long as the method's, since a bin of the other pair's row that lies below
 #: the vertex's normal bin is rejected, and the BSDF's direction taken (``hemi_inv`` would take it: its paths were a
 #: third shorter).
 PROFILE_HOT_ROWS = "hot_rows"
