@@ -10,7 +10,10 @@ lift ``cos θ = 1 − r²`` (Mitsuba's ``square_to_uniform_hemisphere``), each s
 floors and boxes — are bin centres, where the memoised values are exact.
 
 Both accept any vector: :func:`safe_normalize` rescales by the largest component before normalising, so tiny
-(even denormal) and huge vectors keep their direction, and the zero vector or a non-finite one falls back to +z.
+(even denormal) and huge vectors keep their direction, and the zero vector or a non-finite one falls back to +z
+(the cube map needs no normalising at all: its face and position are ratios of the components). The path loop's
+directions are unit vectors already, and skip the rescaling (``unit=True``): the bounce's lookups are a good part of
+its instructions (README, "Cost per sample").
 """
 
 from __future__ import annotations
@@ -52,15 +55,18 @@ class SphereBins:
         self.count = 2 * resolution * resolution
         self.solid_angle = 2 * dr.pi / (resolution * resolution)
 
-    def index(self, d: mi.Vector3f) -> mi.UInt32:
-        """Bin of world direction ``d`` (any length; the zero vector and non-finite input land in a pole bin)."""
-        return self.fine_index(d, 1)
+    def index(self, d: mi.Vector3f, unit: bool = False) -> mi.UInt32:
+        """Bin of world direction ``d`` (any length; the zero vector and non-finite input land in a pole bin;
+        ``unit``: the caller's ``d`` is a unit vector, used as it is)."""
+        return self.fine_index(d, 1, unit)
 
-    def fine_index(self, d: mi.Vector3f, sub_resolution: int) -> mi.UInt32:
+    def fine_index(self, d: mi.Vector3f, sub_resolution: int, unit: bool = False) -> mi.UInt32:
         """``k·R² + j`` for world direction ``d`` in bin k and sub-bin j of the bin's square cut ``R × R``
-        (``R = sub_resolution``; sub-bin ``j = row·R + column``); with R = 1, the bin."""
+        (``R = sub_resolution``; sub-bin ``j = row·R + column``); with R = 1, the bin. ``unit`` as :meth:`index`'s."""
         lower = d.z < 0
-        local = safe_normalize(mi.Vector3f(d.x, d.y, dr.abs(d.z)))
+        local = mi.Vector3f(d.x, d.y, dr.abs(d.z))
+        if not unit:
+            local = safe_normalize(local)
         uv = mi.warp.uniform_hemisphere_to_square(local)
         n, R = self.resolution, sub_resolution
         fine = dr.clip(mi.Vector2i(dr.floor(uv * (n * R))), 0, n * R - 1)
@@ -107,19 +113,23 @@ class NormalBins:
         self.count = 6 * resolution * resolution
 
     def index(self, n: mi.Vector3f) -> mi.UInt32:
-        """Bin of normal ``n`` (any length; the zero vector and non-finite input land in the +z face's centre)."""
-        n = safe_normalize(n)
+        """Bin of normal ``n`` (any length; the zero vector and non-finite input land in the +z face's centre).
+
+        Not normalised: the face is the largest component's, and the position on it the two others' ratios to it,
+        divided (not multiplied by a reciprocal, which is denormal, and flushed to zero, for components over
+        8.5e37)."""
         a = dr.abs(n)
         axis = dr.select((a.x >= a.y) & (a.x >= a.z), 0, dr.select(a.y >= a.z, 1, 2))
         major = dr.select(axis == 0, n.x, dr.select(axis == 1, n.y, n.z))
-        u = dr.select(axis == 0, n.y, n.x)
-        v = dr.select(axis == 2, n.y, n.z)
+        u = dr.select(axis == 0, n.y, n.x) / dr.abs(major)
+        v = dr.select(axis == 2, n.y, n.z) / dr.abs(major)
         face = mi.UInt32(axis) * 2 + dr.select(major < 0, 1, 0)
-        scale = dr.rcp(dr.maximum(dr.abs(major), 1e-20))
         r = self.resolution
-        i = dr.clip(mi.Int32(dr.floor((u * scale * 0.5 + 0.5) * r)), 0, r - 1)
-        j = dr.clip(mi.Int32(dr.floor((v * scale * 0.5 + 0.5) * r)), 0, r - 1)
-        return face * (r * r) + mi.UInt32(j * r + i)
+        i = dr.clip(mi.Int32(dr.floor((u * 0.5 + 0.5) * r)), 0, r - 1)
+        j = dr.clip(mi.Int32(dr.floor((v * 0.5 + 0.5) * r)), 0, r - 1)
+        usable = dr.isfinite(major) & dr.isfinite(u) & dr.isfinite(v)      # 0/0 and ∞/∞ are NaN
+        plus_z_centre = 4 * r * r + (r // 2) * r + r // 2
+        return dr.select(usable, face * (r * r) + mi.UInt32(j * r + i), plus_z_centre)
 
     def normal(self, k: mi.UInt32, sample: mi.Point2f | None = None) -> mi.Vector3f:
         """The unit normal at position ``sample`` ∈ [0,1]² of bin ``k`` (its centre by default)."""

@@ -351,7 +351,7 @@ class GridGuide(Guide):
             vertex.pair = table.pair(vertex.cell, si.sh_frame.n * vertex.side)
             vertex.memo = table.memo(vertex.pair, vertex.guided)
             if mark_visited:
-                dr.scatter(table.visited, mi.UInt32(1), vertex.pair, vertex.guided & (vertex.memo.norm == 0))
+                table.mark_visited(vertex.pair, vertex.guided & (vertex.memo.norm == 0))
         return vertex
 
     def _vertex(self, si, bsdf, active, mark_visited=True) -> "_Vertex":
@@ -363,7 +363,7 @@ class GridGuide(Guide):
             vertex.guided &= vertex.memo.norm > 0
         vertex.bsdf_share = mi.Float(self.bsdf_fraction)
         if self.sampler.startswith("hemi_rej"):
-            vertex.centre = table.normal_bins.normal(vertex.pair % table.normal_bins.count)
+            vertex.centre = table.normal_centre(vertex.pair, vertex.guided)
             share = mi.Float(0)
             if self.sampler == "hemi_rej_plus":
                 c = vertex.memo.norm / (2 * dr.pi * vertex.memo.bound)     # ū/M, the mean of P·cos over its maximum

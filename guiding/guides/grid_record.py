@@ -167,6 +167,7 @@ class RadianceRecord:
             self.value = dr.zeros(mi.Float, C * NB)
             # A row of B slots (no shorter than a pair's row), never read, until a visit.
             self.hemi_alias = dr.zeros(mi.Float, alias_rows.SLOT_FIELDS * B) if needs_hemi_alias else None
+            self.normal_centres = dr.ravel(self.normal_bins.normal(dr.arange(mi.UInt32, NB)))     # x, y, z per bin
             self.cos_integral, self.max_cos = self._cosine_tables()
             self.in_bin_bound, self.in_bin_scale, self.in_bin_misses = (self._in_bin_tables() if needs_in_bin
                                                                         else (None, None, None))
@@ -181,7 +182,8 @@ class RadianceRecord:
         self.refined_stats: dict[str, int] = {}
         # In memory, not literals: the untrained passes' tables are the same kind of input to a frozen pass as the
         # trained ones' (guiding.frozen_pass).
-        pair_tables = (self.visited, self.pair_memo, self.value, self.hemi_alias) if self.needs_pairs else ()
+        pair_tables = ((self.visited, self.pair_memo, self.value, self.hemi_alias, self.normal_centres)
+                       if self.needs_pairs else ())
         dr.make_opaque(self.acc_sum, self.acc_count, self.q, self.policy, *pair_tables)
 
     # ------------------------------------------------------------------ geometry
@@ -194,25 +196,38 @@ class RadianceRecord:
         return self.grid.cell(p)
 
     def index(self, p: mi.Point3f, d: mi.Vector3f) -> mi.UInt32:
-        """The record index of position ``p`` and world direction ``d``: the flat (cell, bin) entry, or with
+        """The record index of position ``p`` and unit world direction ``d``: the flat (cell, bin) entry, or with
         refinement ``entry·R² + sub-bin`` (:meth:`entry` gives the entry back)."""
         return self.cell(p) * (self.bins.count * self.fine) + self.fine_bin(d)
 
     def fine_bin(self, d: mi.Vector3f) -> mi.UInt32:
-        """The bin of world direction ``d``, or with refinement ``bin·R² + sub-bin``."""
-        return self.bins.fine_index(d, self.sub_resolution)
+        """The bin of unit world direction ``d``, or with refinement ``bin·R² + sub-bin``."""
+        return self.bins.fine_index(d, self.sub_resolution, unit=True)
 
     def entry(self, index: mi.UInt32) -> mi.UInt32:
         """The (cell, bin) entry of a record index (:meth:`index`)."""
         return index // self.fine if self.refinement else index
 
     def policy_at(self, cell: mi.UInt32, d: mi.Vector3f, active: mi.Bool = True) -> mi.Float:
-        """P of world direction ``d``'s bin in ``cell``."""
-        return dr.gather(mi.Float, self.policy, cell * self.bins.count + self.bins.index(d), active)
+        """P of unit world direction ``d``'s bin in ``cell``."""
+        return dr.gather(mi.Float, self.policy, cell * self.bins.count + self.bins.index(d, unit=True), active)
 
     def pair(self, cell: mi.UInt32, n: mi.Vector3f) -> mi.UInt32:
-        """Flat (cell, normal bin) index of a cell and a unit normal."""
+        """Flat (cell, normal bin) index of a cell and a normal."""
         return cell * self.normal_bins.count + self.normal_bins.index(n)
+
+    @dr.syntax
+    def mark_visited(self, pair: mi.UInt32, new: mi.Bool) -> None:
+        """Mark (cell, normal bin) pairs ``pair`` visited in the lanes ``new`` (:meth:`update` memoises them). A
+        branch: once the guide has learned, few packets hold such a lane, and the others skip the scatter (on the CPU
+        a loop over the packet's lanes)."""
+        if new:
+            dr.scatter(self.visited, mi.UInt32(1), pair, new)
+
+    def normal_centre(self, pair: mi.UInt32, active: mi.Bool = True) -> mi.Vector3f:
+        """The unit normal at the centre of the normal bin of (cell, normal bin) pairs ``pair``: one read of a table
+        of 6·R² normals, in place of the cube map's arithmetic at every guided vertex."""
+        return dr.gather(mi.Vector3f, self.normal_centres, pair % self.normal_bins.count, active)
 
     def hemi_sample(self, pair: mi.UInt32, row: mi.UInt32, u: mi.Point2f,
                     active: mi.Bool) -> tuple[mi.UInt32, mi.Float]:
@@ -460,8 +475,9 @@ class RadianceRecord:
         if needs_cell_alias:
             total += alias_rows.SLOT_BYTES * C * B               # the cells' alias tables
         if needs_memo or needs_hemi_alias or needs_in_bin or needs_value:
-            # cosine and in-bin tables, and the row layouts (row_bins and reach_bins at most NB·B each)
-            total += 4 * ((PAIR_FIELDS + 2) * C * NB + (8 if needs_in_bin else 4) * NB * B)
+            # the normal bins' centres, cosine and in-bin tables, and the row layouts (row_bins and reach_bins at most
+            # NB·B each)
+            total += 4 * ((PAIR_FIELDS + 2) * C * NB + 3 * NB + (8 if needs_in_bin else 4) * NB * B)
             total += alias_rows.SLOT_BYTES * B if needs_hemi_alias else 0                      # placeholder row
         if sub_resolution > 1:
             total += BinRefinement.planned_bytes(C * B, sub_resolution, refine_capacity)
@@ -471,6 +487,7 @@ class RadianceRecord:
         arrays = [self.acc_sum, self.acc_count, self.q, self.policy, self.cell_alias]
         if self.needs_pairs:
             arrays += [self.visited, self.pair_memo, self.value, self.hemi_alias, self.row_bins, self.row_slots,
+                       self.normal_centres,
                        None if self.reach_bins is self.row_bins else self.reach_bins,
                        self.cos_integral, self.max_cos, self.in_bin_bound, self.in_bin_scale, self.in_bin_misses]
         refined = self.refinement.memory_bytes() if self.refinement else 0
