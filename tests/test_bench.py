@@ -76,7 +76,7 @@ def test_hot_rows_instrument_draws_and_looks_up_in_the_first_row():
     memo = table.memo(pair, True)
     assert np.all(np.array(memo.row) == 1)
     vertex = _Vertex(guided=mi.Bool(True), cell=mi.UInt32(0), side=mi.Float(1), pair=pair, memo=memo,
-                     centre=table.normal_bins.normal(pair % table.normal_bins.count))
+                     centre=table.normal_centre(pair))
     k = dr.arange(mi.UInt32, lanes) % B
     drawn = {}
     for stage, guide in guides.items():

@@ -289,7 +289,7 @@ class RadianceRecord:
         integral *= self.bins.solid_angle / (m * m)
 
         bin_centres = self.bins.centres()
-        normal_centres = self.normal_bins.normal(dr.arange(mi.UInt32, NB))
+        normal_centres = dr.unravel(mi.Vector3f, self.normal_centres)
         bin_radius = _angular_radius(self.bins.direction, B, bin_centres)
         normal_radius = _angular_radius(self.normal_bins.normal, NB, normal_centres)
         angle = dr.safe_acos(dr.dot(normal, dr.gather(mi.Vector3f, bin_centres, k)))

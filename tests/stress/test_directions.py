@@ -71,8 +71,8 @@ def test_sphere_bins_equal_solid_angle(resolution, figures):
 
 @pytest.mark.parametrize("resolution", NORMAL_RESOLUTIONS)
 def test_normal_bins_maps(resolution, figures):
-    """NormalBins: interiors map back to their bin, the six axes are bin centres, zero/NaN/Inf normals give a valid
-    bin, scaled normals keep theirs (R = 1, 3, 5, 7)."""
+    """NormalBins: interiors map back to their bin, the six axes are bin centres, zero/NaN/Inf normals land in the +z
+    face's centre bin, scaled normals keep theirs (R = 1, 3, 5, 7)."""
     bins, geometry = normal_bins_geometry(resolution)
     problems = round_trip_violations(bins.index, bins.normal, bins.count)
     problems += containment_violations(bins.index, bins.count, geometry,
@@ -84,6 +84,13 @@ def test_normal_bins_maps(resolution, figures):
     centres = to_numpy(bins.normal(mi.UInt32(k.astype(np.uint32))))
     off = angle_between(unit(axes), unit(centres)) > 2 * EPS32
     problems += [f"axis {tuple(a)} is not the centre of bin {b}" for a, b in zip(axes[off], k[off])]
+    # A normal without a direction (zero, NaN, ±Inf in any component) lands in the +z face's centre bin.
+    degenerate = degenerate_inputs()
+    degenerate = degenerate[np.isnan(unit(degenerate, flush=True)).any(axis=1)]
+    landed = np.array(bins.index(vectors(degenerate)))
+    plus_z = int(np.array(bins.index(vectors(np.array([(0, 0, 1)], dtype=np.float32))))[0])
+    problems += [f"{tuple(d)} lands in bin {b}, not the +z centre {plus_z}"
+                 for d, b in zip(degenerate, landed) if b != plus_z]
     figures["bins"] = bins.count
     assert not problems, f"R = {resolution}: {few(problems)}"
 
