@@ -15,7 +15,7 @@ continued along the BSDF's sample: the guide's work at ``brdf``'s paths; its inc
 minus what the guided paths themselves cost); ``[hot rows]`` (the rejection samplers' ``bins`` proposal: the whole
 bounce, every vertex drawing from and reading densities in the first pair's alias row, which stays cached: its
 increment over the method itself is minus what the rows' cache misses cost, together with what drawing every
-vertex's directions from one distribution changes (README, "The `[hot rows]` stage"); ``rays_per_path`` shows how far
+vertex's directions from one distribution changes (results/bench/README.md, "The `[hot rows]` stage"); ``rays_per_path`` shows how far
 its paths are from the method's, and a missed target's bottleneck gives the change per ray too).
 Tree guides: ``[no record]`` (the method's own trees, as they
 are at each pass, sampled by a kernel that records nothing) and ``[+record]``. The partial stages are a benchmark
@@ -218,6 +218,7 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
         timed = interleaved_passes(scene, integrators, passes=passes, pass_spp=pass_spp)
         kernel_per_spp = {m: float(np.median([r.kernel for r in records])) / pass_spp
                           for m, records in timed.items()}
+        brdf_passes = timed["brdf"]
         trace = timed[TRACE_ONLY]
         trace_rays_per_s = sum(r.rays for r in trace) / sum(r.kernel for r in trace)
         for method, stage_list in stages.items():
@@ -245,6 +246,7 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
                 "scene": name, "resolution": _resolution(scene), "method": method,
                 "kernel_ms_per_spp": 1e3 * kernel_per_spp[method],
                 "ratio_to_brdf": kernel_per_spp[method] / kernel_per_spp["brdf"],
+                **paired_quartiles(records, brdf_passes),
                 "ratio_to_path": kernel_per_spp[method] / kernel_per_spp["path"],
                 "wall_ms_per_spp": 1e3 * float(np.median([r.wall for r in records])) / pass_spp,
                 "trace_ms_per_pass": 1e3 * float(np.median([max(r.wall - r.kernel - r.compile, 0.0)
@@ -263,6 +265,14 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
                 "nothing_to_guide": nothing_to_guide,
             })
     return pd.DataFrame(rows), pd.DataFrame(breakdown_rows)
+
+
+def paired_quartiles(records: list[PassTiming], baseline: list[PassTiming]) -> dict[str, float]:
+    """The quartiles of the per-pass ratios of kernel time to ``baseline``'s pass of the same index (interleaved, so
+    the two ran seconds apart): how far the run's noise moves ``ratio_to_brdf``, which is a ratio of medians."""
+    ratios = [r.kernel / b.kernel for r, b in zip(records, baseline)]
+    q25, q75 = np.quantile(ratios, [0.25, 0.75])
+    return {"ratio_q25": float(q25), "ratio_q75": float(q75)}
 
 
 def _guided_per_ray(records: list, nothing_to_guide: bool) -> float | None:
@@ -365,14 +375,21 @@ def target_table(frame: pd.DataFrame, device_kind: str, breakdown: pd.DataFrame 
             if row["nothing_to_guide"] and column == "ratio_to_brdf":
                 continue      # judged by the no-guidable bound below
             met = row[column] >= -bound if bound < 0 else row[column] <= bound   # a negative bound is a minimum
-            rows.append({"target": what, "scene": row["scene"], "measured": row[column], "met": bool(met),
+            rows.append({"target": what, "scene": row["scene"], "measured": row[column],
+                         **_spread(row, column), "met": bool(met),
                          "bottleneck": "" if met else bottleneck(row, column, breakdown)})
     for _, row in frame[frame["nothing_to_guide"]].iterrows():
         met = bool(row["ratio_to_brdf"] <= NO_GUIDABLE_BOUND)
         rows.append({"target": f"nothing to guide: `{row['method']}` ≤ {NO_GUIDABLE_BOUND}× `brdf`",
-                     "scene": row["scene"], "measured": row["ratio_to_brdf"], "met": met,
-                     "bottleneck": "" if met else "the passes run brdf's kernel: machine noise"})
+                     "scene": row["scene"], "measured": row["ratio_to_brdf"], **_spread(row, "ratio_to_brdf"),
+                     "met": met, "bottleneck": "" if met else "the passes run brdf's kernel: machine noise"})
     return pd.DataFrame(rows)
+
+
+def _spread(row: pd.Series, column: str) -> dict[str, float | None]:
+    """The paired per-pass quartiles of a ratio to ``brdf`` (:func:`paired_quartiles`); None for other columns."""
+    known = column == "ratio_to_brdf" and "ratio_q25" in row
+    return {"pass_q25": row["ratio_q25"] if known else None, "pass_q75": row["ratio_q75"] if known else None}
 
 
 def bottleneck(row: pd.Series, column: str, breakdown: pd.DataFrame | None) -> str:

@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 
 from guiding.bench import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, PassTiming, _guided_per_ray,
-                           benchmark, breakdown_variants, interleaved_passes, target_table)
+                           benchmark, breakdown_variants, interleaved_passes, paired_quartiles, target_table)
 from guiding.bench_child import child_failure
 from guiding.cpu_profile import parse_report, profile_table, table_access_share
 from guiding.errors import GuidingError
@@ -114,10 +114,24 @@ def test_breakdown_table_shape():
     # glossy-box has nothing to guide for ours (purely diffuse surfaces only), but glossy lobes for the SD-tree.
     assert frame.set_index("method")["nothing_to_guide"].to_dict() == {
         "path": False, TRACE_ONLY: False, "brdf": False, "ours": True, "sdtree": False}
+    assert frame.set_index("method").loc["brdf", ["ratio_q25", "ratio_q75"]].tolist() == [1.0, 1.0]
     targets = target_table(frame, "cpu")
     nothing = targets[targets["target"].str.startswith("nothing to guide")]
+    assert nothing["pass_q25"].notna().all()
     assert list(nothing["target"]) == ["nothing to guide: `ours` ≤ 1.05× `brdf`"]
     assert "`sdtree` ≤ 1.3× `brdf` per spp" in set(targets["target"])
+
+
+def test_paired_quartiles_divide_each_pass_by_the_baselines_pass_of_the_same_index():
+    """The spread of a ratio comes from passes paired by index (run seconds apart), not from the two methods'
+    times sorted apart: a machine that slows both alike leaves every paired ratio at 2."""
+    def passes(kernels):
+        return [PassTiming(wall=k, kernel=k, compile=0.0, update=0.0, refine=0.0) for k in kernels]
+
+    baseline = passes([1.0, 3.0, 2.0, 5.0, 4.0])
+    assert paired_quartiles(passes([2.0, 6.0, 4.0, 10.0, 8.0]), baseline) == {"ratio_q25": 2.0, "ratio_q75": 2.0}
+    # Paired ratios 1, 2, 3, 4, 5.
+    assert paired_quartiles(passes([1.0, 6.0, 6.0, 20.0, 20.0]), baseline) == {"ratio_q25": 2.0, "ratio_q75": 4.0}
 
 
 def test_guided_per_ray_sums_the_counted_passes():
