@@ -414,10 +414,11 @@ def _validate_learning(args, out, device: str) -> None:
     from .bench import write_table
     from .validation import learning_table
 
-    learning = learning_table(spp=64 if args.quick else 256, reference_spp=256 if args.quick else 4096)
+    seeds = (1,) if args.quick else (1, 2, 3, 4)
+    learning = learning_table(spp=64 if args.quick else 256, reference_spp=256 if args.quick else 4096, seeds=seeds)
     command = "python -m guiding validate" + (" --part learning" if args.part == "learning" else "")
-    write_table(learning, out / "learning", "Equal spp on door-ajar (scale 0.25): MAE vs a `path` reference",
-                device, command)
+    write_table(learning, out / "learning", "Equal spp on door-ajar (scale 0.25): MAE vs a `path` reference (means "
+                f"over seeds {', '.join(map(str, seeds))}; `mae_se`: the MAE's standard error)", device, command)
     print(learning.to_string(index=False))
 
 
