@@ -27,8 +27,9 @@ SLOT_FIELDS = 4
 #: Bytes per bin of a table.
 SLOT_BYTES = 4 * SLOT_FIELDS
 #: Bytes per bin of the temporaries of a table's construction (the weights and their float64 copy for the row sums,
-#: the small-bin flags and lists, thresholds and aliases, the float64 sums the sweep writes, densities).
-BUILD_BYTES = 48
+#: the small-bin flags and lists, the lists' entries beside their weights, thresholds and aliases, the float64 sums
+#: the sweep writes, densities).
+BUILD_BYTES = 56
 #: Thresholds below this are set to 0: such a bin (probability < 2⁻⁶⁴/size) is never drawn, so that no drawn bin
 #: has a density that underflows float32.
 NEGLIGIBLE = 2.0 ** -64
@@ -53,8 +54,9 @@ def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Floa
     alias = dr.select(small == 0, k, 0)    # its own variable: the sweep writes in place (a scatter into k copies k)
     received = dr.zeros(mi.Float64, rows * size)
     dr.make_opaque(received)       # zeroed here, once (a literal scattered into in the sweep's loop is zeroed twice)
-    dr.eval(threshold, alias, listed)
-    _sweep(w, row_sum, threshold, alias, received, listed, small_count, size)
+    entries = _with_weights(listed, w, size)
+    dr.eval(threshold, alias, entries)
+    _sweep(row_sum, threshold, alias, received, entries, small_count, size)
 
     first = row_of * size
     density = mi.Float((mi.Float64(threshold) + received) / size) * scale
@@ -94,36 +96,49 @@ def _lists(small: mi.UInt32, row_of: mi.UInt32, k: mi.UInt32, size: int) -> tupl
     return listed, small_count
 
 
+def _with_weights(listed: mi.UInt32, w: mi.Float, size: int) -> mi.Float:
+    """The list entries beside their bins' weights, (bin bits, weight) per entry: a step of the sweep reads both in
+    one packet gather, not the weight through a second, dependent one."""
+    flat = dr.arange(mi.UInt32, dr.width(listed))
+    weight = dr.gather(mi.Float, w, (flat // size) * size + listed)
+    entries = dr.empty(mi.Float, 2 * dr.width(listed))
+    dr.scatter(entries, mi.Vector2f(dr.reinterpret_array(mi.Float, listed), weight), flat)
+    return entries
+
+
 def _as_sampled(threshold):
     """A threshold as :func:`sample` compares against it: float32, and 0 below :data:`NEGLIGIBLE`."""
     return mi.Float(dr.select(threshold < NEGLIGIBLE, 0, threshold))
 
 
 @dr.syntax
-def _sweep(w, row_sum, threshold, alias, received_by, listed, small_count, size: int) -> None:
-    """Vose's pairing, one lane per row (weights ``w``, their sums ``row_sum``): writes the small bins' thresholds
+def _sweep(row_sum, threshold, alias, received_by, entries, small_count, size: int) -> None:
+    """Vose's pairing, one lane per row (the rows' weight sums ``row_sum``): writes the small bins' thresholds
     and aliases, and those of the large bins whose excess ran out (the others keep threshold 1), thresholds as
     sampled (:func:`_as_sampled`). Writes to ``received_by`` what each bin receives from the slots that alias it,
     ``Σ (1 − t_j)``, summed as the sweep hands the slots out (a large bin is the alias of the slots handed to it while
     it is the current one), not by an atomic add per slot.
 
-    ``listed``: each row's small bins, then its large ones (:func:`_lists`). A step either hands the next small bin
+    ``entries``: each row's small bins, then its large ones (:func:`_lists`), each beside its weight
+    (:func:`_with_weights`). A step either hands the next small bin
     to the current large bin (give) or, once the current one's excess is below 1, turns it small, aliased to the next
     large bin (turn): never both, so a step reads one list entry and one weight, and writes one slot."""
     first = dr.arange(mi.UInt32, dr.width(small_count)) * size
     large_count = size - small_count
     taken, converted = mi.UInt32(0), mi.UInt32(0)        # small bins handed out; large bins turned small
-    current = dr.gather(mi.UInt32, listed, first + small_count)
+    entry = dr.gather(mi.Vector2f, entries, first + small_count)
+    current = dr.reinterpret_array(mi.UInt32, entry.x)
     # The current large bin's probability not yet in a slot.
-    excess = _probability(dr.gather(mi.Float, w, first + current), row_sum, size)
+    excess = _probability(entry.y, row_sum, size)
     received = mi.Float64(0)                             # what the current large bin's aliasing slots add to it
     going = mi.Bool(True)
     while going:
         turn = (excess < 1) & (converted + 1 < large_count)
         give = ~turn & (taken < small_count)
         going = turn | give
-        following = dr.gather(mi.UInt32, listed, first + dr.select(turn, small_count + converted + 1, taken), going)
-        mass = _probability(dr.gather(mi.Float, w, first + following, going), row_sum, size)
+        entry = dr.gather(mi.Vector2f, entries, first + dr.select(turn, small_count + converted + 1, taken), going)
+        following = dr.reinterpret_array(mi.UInt32, entry.x)
+        mass = _probability(entry.y, row_sum, size)
         # turn: the current bin's slot keeps its excess and is aliased to the following large bin; give: the
         # following small bin's slot keeps its probability and is aliased to the current bin.
         slot = first + dr.select(turn, current, following)
