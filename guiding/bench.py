@@ -15,8 +15,9 @@ continued along the BSDF's sample: the guide's work at ``brdf``'s paths; its inc
 minus what the guided paths themselves cost); ``[hot rows]`` (the rejection samplers' ``bins`` proposal: the whole
 bounce, every vertex drawing from and reading densities in the first pair's alias row, which stays cached: its
 increment over the method itself is minus what the rows' cache misses cost, together with what drawing every
-vertex's directions from one distribution changes (results/bench/README.md, "The `[hot rows]` stage"); ``rays_per_path`` shows how far
-its paths are from the method's, and a missed target's bottleneck gives the change per ray too).
+vertex's directions from one distribution changes (results/bench/README.md, "The `[hot rows]` stage");
+``rays_per_path`` shows how far its paths are from the method's, and a missed target's bottleneck gives the change
+per ray too).
 Tree guides: ``[no record]`` (the method's own trees, as they
 are at each pass, sampled by a kernel that records nothing) and ``[+record]``. The partial stages are a benchmark
 instrument (``GridParameters.profile_stage``): their images are not meant to be correct, and they learn their
@@ -269,8 +270,9 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
 
 def paired_quartiles(records: list[PassTiming], baseline: list[PassTiming]) -> dict[str, float]:
     """The quartiles of the per-pass ratios of kernel time to ``baseline``'s pass of the same index (interleaved, so
-    the two ran seconds apart): how far the run's noise moves ``ratio_to_brdf``, which is a ratio of medians."""
-    ratios = [r.kernel / b.kernel for r, b in zip(records, baseline)]
+    the two ran seconds apart): the spread of the paired ratios, beside ``ratio_to_brdf`` (a ratio of medians, which
+    need not lie between them)."""
+    ratios = [r.kernel / b.kernel for r, b in zip(records, baseline, strict=True)]
     q25, q75 = np.quantile(ratios, [0.25, 0.75])
     return {"ratio_q25": float(q25), "ratio_q75": float(q75)}
 

@@ -412,9 +412,9 @@ def _command_validate(args) -> None:
 def _validate_learning(args, out, device: str) -> None:
     """results/learning.md: every method's MAE and hit rate at equal spp on door-ajar."""
     from .bench import write_table
-    from .validation import learning_table
+    from .validation import LEARNING_SEEDS, learning_table
 
-    seeds = (1,) if args.quick else (1, 2, 3, 4)
+    seeds = LEARNING_SEEDS[:1] if args.quick else LEARNING_SEEDS
     learning = learning_table(spp=64 if args.quick else 256, reference_spp=256 if args.quick else 4096, seeds=seeds)
     command = "python -m guiding validate" + (" --part learning" if args.part == "learning" else "")
     write_table(learning, out / "learning", "Equal spp on door-ajar (scale 0.25): MAE vs a `path` reference (means "

@@ -8,8 +8,9 @@ loop over the lanes (a branch and a scalar load per lane), so a table read costs
 (AVX-512, Intel since Skylake) it emits ``vpgatherdd``, counted in ``hardware_gathers``. On Zen 3 the package asks
 for the instruction (:func:`guiding.backend.use_hardware_gathers`), so counts made there before it are not
 comparable with later ones. The instruction count of a method's kernel against ``brdf``'s is a noise-free account of
-the code the guided bounce adds, which its time follows in part (results/bench/README.md, "Arithmetic is not free"); the table reads
-among them and where the paths go count too (``bench``'s ``[hot rows]`` stage, results/bench/README.md, "The `[hot rows]` stage").
+the code the guided bounce adds, which its time follows in part (results/bench/README.md, "Arithmetic is not
+free"); the table reads among them and where the paths go count too (``bench``'s ``[hot rows]`` stage,
+results/bench/README.md, "The `[hot rows]` stage").
 
 How: each method runs in a fresh process on one Dr.Jit thread (the kernels hold some 20 instructions more with two)
 and an empty kernel cache, so that every kernel is compiled, with Dr.Jit logging at its trace level (which prints

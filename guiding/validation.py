@@ -138,22 +138,25 @@ def _equal_spp_rows(scene_name: str, scale: float, spp: int, reference_spp: int,
     return rows
 
 
+#: The seeds of validate's learning table (``--quick``: the first alone).
+LEARNING_SEEDS = (1, 2, 3, 4)
+
+
 def learning_table(scene_name: str = "door-ajar", scale: float = 0.25, spp: int = 256, reference_spp: int = 4096,
                    methods: tuple[str, ...] = ("brdf", "ours", "ours-uniform-proposals", "ours-no-rejopt",
                                                "ours-expected", "sdtree", "quadtree-grid"),
-                   seeds: tuple[int, ...] = (1, 2, 3, 4)) -> pd.DataFrame:
+                   seeds: tuple[int, ...] = LEARNING_SEEDS) -> pd.DataFrame:
     """MAE, relMSE, hit rate and time of each method at equal spp against a `path` reference: means over ``seeds``,
-    and the MAE's standard error (``mae_se``; 0 with one seed), so that a change of a method's MAE can be told from
-    the spread of its renders."""
+    the MAE's standard error (``mae_se``; NaN with one seed, whose spread is unknown) and the renders behind each
+    row (``seeds``), so that a change of a method's MAE can be told from the spread of its renders."""
     import pandas as pd
 
-    rows = pd.DataFrame(_equal_spp_rows(scene_name, scale, spp, reference_spp, seeds,
-                                        [({"method": m}, m, {}) for m in methods]))
-    grouped = rows.drop(columns="seed").groupby("method", sort=False)
-    table = grouped.mean()
-    table.insert(2, "mae_se", grouped["mae"].sem(ddof=1).fillna(0.0))
-    table["seeds"] = grouped.size()
-    return table.reset_index()
+    frame = pd.DataFrame(_equal_spp_rows(scene_name, scale, spp, reference_spp, seeds,
+                                         [({"method": m}, m, {}) for m in methods]))
+    return frame.groupby("method", sort=False).agg(
+        spp=("spp", "first"), mae=("mae", "mean"), mae_se=("mae", "sem"), relmse=("relmse", "mean"),
+        hit_rate=("hit_rate", "mean"), seconds=("seconds", "mean"), update_seconds=("update_seconds", "mean"),
+        refined_bins=("refined_bins", "max"), seeds=("seed", "count")).reset_index()
 
 
 #: The scenes of the ours-plus BSDF share study: the shipped glossy room, and the two shared scenes with rough

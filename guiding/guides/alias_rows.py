@@ -122,7 +122,8 @@ def _sweep(row_sum, threshold, alias, received_by, entries, small_count, size: i
     ``entries``: each row's small bins, then its large ones (:func:`_lists`), each beside its weight
     (:func:`_with_weights`). A step either hands the next small bin
     to the current large bin (give) or, once the current one's excess is below 1, turns it small, aliased to the next
-    large bin (turn): never both, so a step reads one list entry and one weight, and writes one slot."""
+    large bin (turn): never both, so a step reads one list entry (its bin and weight, in one packet gather) and
+    writes one slot."""
     first = dr.arange(mi.UInt32, dr.width(small_count)) * size
     large_count = size - small_count
     taken, converted = mi.UInt32(0), mi.UInt32(0)        # small bins handed out; large bins turned small
