@@ -390,7 +390,7 @@ def target_table(frame: pd.DataFrame, device_kind: str, breakdown: pd.DataFrame 
 
 def _spread(row: pd.Series, column: str) -> dict[str, float | None]:
     """The paired per-pass quartiles of a ratio to ``brdf`` (:func:`paired_quartiles`); None for other columns."""
-    known = column == "ratio_to_brdf" and "ratio_q25" in row
+    known = column == "ratio_to_brdf"
     return {"pass_q25": row["ratio_q25"] if known else None, "pass_q75": row["ratio_q75"] if known else None}
 
 

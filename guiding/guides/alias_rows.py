@@ -27,9 +27,9 @@ SLOT_FIELDS = 4
 #: Bytes per bin of a table.
 SLOT_BYTES = 4 * SLOT_FIELDS
 #: Bytes per bin of the temporaries of a table's construction (the weights and their float64 copy for the row sums,
-#: the small-bin flags and lists, the lists' entries beside their weights, thresholds and aliases, the float64 sums
-#: the sweep writes, densities).
-BUILD_BYTES = 56
+#: the small-bin flags, the lists of bins beside their weights, thresholds and aliases, the float64 sums the sweep
+#: writes, densities).
+BUILD_BYTES = 52
 #: Thresholds below this are set to 0: such a bin (probability < 2⁻⁶⁴/size) is never drawn, so that no drawn bin
 #: has a density that underflows float32.
 NEGLIGIBLE = 2.0 ** -64
@@ -49,12 +49,11 @@ def build(weight: mi.Float, size: int, scale: mi.Float | float = 1.0) -> mi.Floa
              | (w == dr.gather(mi.Float, block_max(w, size), row_of)))
     small = mi.UInt32(~large)
     dr.eval(small)
-    listed, small_count = _lists(small, row_of, k, size)
+    entries, small_count = _lists(small, row_of, k, w, size)
     threshold = dr.select(small == 0, mi.Float(1), 0)
     alias = dr.select(small == 0, k, 0)    # its own variable: the sweep writes in place (a scatter into k copies k)
     received = dr.zeros(mi.Float64, rows * size)
     dr.make_opaque(received)       # zeroed here, once (a literal scattered into in the sweep's loop is zeroed twice)
-    entries = _with_weights(listed, w, size)
     dr.eval(threshold, alias, entries)
     _sweep(row_sum, threshold, alias, received, entries, small_count, size)
 
@@ -82,28 +81,20 @@ def _probability(w: mi.Float, row_sum: mi.Float64, size: int) -> mi.Float64:
     return mi.Float64(w) * size / row_sum
 
 
-def _lists(small: mi.UInt32, row_of: mi.UInt32, k: mi.UInt32, size: int) -> tuple[mi.UInt32, mi.UInt32]:
-    """Each row's bins (bin ``k`` of row ``row_of`` per slot, 1 in ``small`` where it is small) in one stretch of
-    ``size``: its small bins in order, then its large ones in order; and the number of small bins per row (where the
-    large ones start)."""
+def _lists(small: mi.UInt32, row_of: mi.UInt32, k: mi.UInt32, w: mi.Float,
+           size: int) -> tuple[mi.Float, mi.UInt32]:
+    """Each row's bins (bin ``k`` of row ``row_of`` per slot, 1 in ``small`` where it is small, weight ``w``) in one
+    stretch of ``size`` entries: its small bins in order, then its large ones in order, each entry the bin's bits beside
+    its weight (a step of the sweep reads both in one packet gather, not the weight through a second, dependent one);
+    and the number of small bins per row (where the large ones start)."""
     position = dr.block_prefix_sum(small, size, exclusive=True)
     last = dr.arange(mi.UInt32, dr.width(k) // size) * size + size - 1
     small_count = dr.gather(mi.UInt32, position, last) + dr.gather(mi.UInt32, small, last)
     # A large bin's place: after the row's small bins, behind the large bins before it (k − the small ones before it).
     place = dr.select(small != 0, position, dr.gather(mi.UInt32, small_count, row_of) + k - position)
-    listed = dr.empty(mi.UInt32, dr.width(k))
-    dr.scatter(listed, k, row_of * size + place)
-    return listed, small_count
-
-
-def _with_weights(listed: mi.UInt32, w: mi.Float, size: int) -> mi.Float:
-    """The list entries beside their bins' weights, (bin bits, weight) per entry: a step of the sweep reads both in
-    one packet gather, not the weight through a second, dependent one."""
-    flat = dr.arange(mi.UInt32, dr.width(listed))
-    weight = dr.gather(mi.Float, w, (flat // size) * size + listed)
-    entries = dr.empty(mi.Float, 2 * dr.width(listed))
-    dr.scatter(entries, mi.Vector2f(dr.reinterpret_array(mi.Float, listed), weight), flat)
-    return entries
+    entries = dr.empty(mi.Float, 2 * dr.width(k))
+    dr.scatter(entries, mi.Vector2f(dr.reinterpret_array(mi.Float, k), w), row_of * size + place)
+    return entries, small_count
 
 
 def _as_sampled(threshold):
@@ -119,11 +110,10 @@ def _sweep(row_sum, threshold, alias, received_by, entries, small_count, size: i
     ``Σ (1 − t_j)``, summed as the sweep hands the slots out (a large bin is the alias of the slots handed to it while
     it is the current one), not by an atomic add per slot.
 
-    ``entries``: each row's small bins, then its large ones (:func:`_lists`), each beside its weight
-    (:func:`_with_weights`). A step either hands the next small bin
-    to the current large bin (give) or, once the current one's excess is below 1, turns it small, aliased to the next
-    large bin (turn): never both, so a step reads one list entry (its bin and weight, in one packet gather) and
-    writes one slot."""
+    ``entries``: each row's small bins, then its large ones, each beside its weight (:func:`_lists`). A step either
+    hands the next small bin to the current large bin (give) or, once the current one's excess is below 1, turns it
+    small, aliased to the next large bin (turn): never both, so a step reads one list entry (its bin and weight, in
+    one packet gather) and writes one slot."""
     first = dr.arange(mi.UInt32, dr.width(small_count)) * size
     large_count = size - small_count
     taken, converted = mi.UInt32(0), mi.UInt32(0)        # small bins handed out; large bins turned small

@@ -216,6 +216,10 @@ class RadianceRecord:
         """Flat (cell, normal bin) index of a cell and a normal."""
         return cell * self.normal_bins.count + self.normal_bins.index(n)
 
+    def normal_bin(self, pair: mi.UInt32) -> mi.UInt32:
+        """The normal bin of (cell, normal bin) pairs ``pair`` (:meth:`pair`)."""
+        return pair % self.normal_bins.count
+
     @dr.syntax
     def mark_visited(self, pair: mi.UInt32, new: mi.Bool) -> None:
         """Mark (cell, normal bin) pairs ``pair`` visited in the lanes ``new`` (:meth:`update` memoises them). A
@@ -227,14 +231,14 @@ class RadianceRecord:
     def normal_centre(self, pair: mi.UInt32, active: mi.Bool = True) -> mi.Vector3f:
         """The unit normal at the centre of the normal bin of (cell, normal bin) pairs ``pair``: one read of a table
         of 6·R² normals, in place of the cube map's arithmetic at every guided vertex."""
-        return dr.gather(mi.Vector3f, self.normal_centres, pair % self.normal_bins.count, active)
+        return dr.gather(mi.Vector3f, self.normal_centres, self.normal_bin(pair), active)
 
     def hemi_sample(self, pair: mi.UInt32, row: mi.UInt32, u: mi.Point2f,
                     active: mi.Bool) -> tuple[mi.UInt32, mi.Float]:
         """A bin drawn with ``u`` from row ``row`` of ``hemi_alias`` (the row of pair ``pair``), and its density
         (see the module's docstring)."""
         slot, density = alias_rows.sample(self.hemi_alias, row, self.row_length, u, active)
-        k = dr.gather(mi.UInt32, self.row_bins, (pair % self.normal_bins.count) * self.row_length + slot, active)
+        k = dr.gather(mi.UInt32, self.row_bins, self.normal_bin(pair) * self.row_length + slot, active)
         return k, density
 
     def hemi_density(self, pair: mi.UInt32, row: mi.UInt32, k: mi.UInt32, active: mi.Bool) -> mi.Float:
@@ -347,7 +351,7 @@ class RadianceRecord:
     def normal_bin_flat(self, pair: mi.UInt32, k: mi.UInt32) -> mi.UInt32:
         """Index of the per-(normal bin, bin) tables (the in-bin tables, ``row_slots``) for bin ``k`` at the normal
         bin of ``pair``."""
-        return (pair % self.normal_bins.count) * self.bins.count + k
+        return self.normal_bin(pair) * self.bins.count + k
 
     # ------------------------------------------------------------------ learning
     def accumulate(self, index: mi.UInt32, target: mi.Float, active: mi.Bool) -> None:
