@@ -231,7 +231,12 @@ class RadianceRecord:
     def normal_centre(self, pair: mi.UInt32, active: mi.Bool = True) -> mi.Vector3f:
         """The unit normal at the centre of the normal bin of (cell, normal bin) pairs ``pair``: one read of a table
         of 6·R² normals, in place of the cube map's arithmetic at every guided vertex."""
-        return dr.gather(mi.Vector3f, self.normal_centres, self.normal_bin(pair), active)
+        return self._centre_of(self.normal_bin(pair), active)
+
+    def _centre_of(self, normal_bin: mi.UInt32, active: mi.Bool = True) -> mi.Vector3f:
+        """The centre of normal bin ``normal_bin``, from the table (the precomputations' normals too: one
+        definition of n_c, and the memoised values are exact at the very normal the samplers read)."""
+        return dr.gather(mi.Vector3f, self.normal_centres, normal_bin, active)
 
     def hemi_sample(self, pair: mi.UInt32, row: mi.UInt32, u: mi.Point2f,
                     active: mi.Bool) -> tuple[mi.UInt32, mi.Float]:
@@ -273,7 +278,7 @@ class RadianceRecord:
         B, NB, m = self.bins.count, self.normal_bins.count, quadrature_points(self.bins.resolution)
         flat = dr.arange(mi.UInt32, NB * B)
         nb, k = flat // B, flat % B
-        normal = self.normal_bins.normal(nb)
+        normal = self._centre_of(nb)
         integral = dr.zeros(mi.Float, NB * B)
         # Per kernel: one row i of quadrature points and a chunk of `columns` of its points, side by side in the
         # array (at most QUADRATURE_WIDTH entries, whatever D) and summed per (normal bin, bin). The row and the
@@ -281,7 +286,7 @@ class RadianceRecord:
         columns = max(1, min(m, QUADRATURE_WIDTH // (NB * B)))
         wide = dr.arange(mi.UInt32, NB * B * columns)
         wide_k, offset = (wide // columns) % B, wide % columns
-        wide_normal = self.normal_bins.normal(wide // (columns * B))
+        wide_normal = self._centre_of(wide // (columns * B))
         for i in range(m):
             for first in range(0, m, columns):
                 column = dr.opaque(mi.UInt32, first) + offset
@@ -293,7 +298,7 @@ class RadianceRecord:
         integral *= self.bins.solid_angle / (m * m)
 
         bin_centres = self.bins.centres()
-        normal_centres = dr.unravel(mi.Vector3f, self.normal_centres)
+        normal_centres = self._centre_of(dr.arange(mi.UInt32, NB))
         bin_radius = _angular_radius(self.bins.direction, B, bin_centres)
         normal_radius = _angular_radius(self.normal_bins.normal, NB, normal_centres)
         angle = dr.safe_acos(dr.dot(normal, dr.gather(mi.Vector3f, bin_centres, k)))
@@ -314,7 +319,7 @@ class RadianceRecord:
 
         B, NB = self.bins.count, self.normal_bins.count
         k = dr.arange(mi.UInt32, NB * B) % B
-        normal = self.normal_bins.normal(dr.arange(mi.UInt32, NB * B) // B)
+        normal = self._centre_of(dr.arange(mi.UInt32, NB * B) // B)
         centres = self.bins.centres()
         radius = dr.gather(mi.Float, _angular_radius(self.bins.direction, B, centres), k)
         angle = dr.safe_acos(dr.dot(normal, dr.gather(mi.Vector3f, centres, k)))
