@@ -12,7 +12,7 @@ import sys
 
 from snakemake.exceptions import WorkflowError
 
-from guiding import harness
+from guiding.experiments import harness
 
 if not workflow.config_settings.configfiles:
     # A report describes a run: without --configfile, the one that last completed here (onsuccess below).
@@ -49,7 +49,7 @@ os.environ.setdefault("GUIDING_PYTHON", sys.executable)
 # Output to the job's log; on failure, the cause from the log on stderr (and the command's exit status kept).
 LOG_AND_CAUSE = (
     " > {log:q} 2>&1 || {{ status=$?;"
-    ' "$GUIDING_PYTHON" -m guiding.harness cause {log:q} --status $status; exit $status; }}'
+    ' "$GUIDING_PYTHON" -m guiding.experiments.harness cause {log:q} --status $status; exit $status; }}'
 )
 
 
@@ -187,7 +187,7 @@ rule evaluate:
         run=lambda wc: json.dumps(PLAN.run_for(wc).info()),
     shell:
         logged(
-            '"$GUIDING_PYTHON" -m guiding.harness evaluate {input.image:q} {input.stats:q} {input.reference:q}'
+            '"$GUIDING_PYTHON" -m guiding.experiments.harness evaluate {input.image:q} {input.stats:q} {input.reference:q}'
             " --run {params.run:q} --out {output:q}"
         )
 
@@ -220,7 +220,7 @@ rule table:
         spec=lambda wc: json.dumps(PLAN.experiment_spec(wc.experiment)),
     shell:
         logged(
-            '"$GUIDING_PYTHON" -m guiding.tables --spec {params.spec:q} --csv {output.csv:q} --md {output.md:q}'
+            '"$GUIDING_PYTHON" -m guiding.experiments.tables --spec {params.spec:q} --csv {output.csv:q} --md {output.md:q}'
             " --runs-csv {output.runs:q} {input:q}"
         )
 
@@ -240,7 +240,7 @@ rule figure_comparison:
     params:
         job=lambda wc: json.dumps(PLAN.comparison_job(wc.experiment)),
     shell:
-        logged('"$GUIDING_PYTHON" -m guiding.figures comparison --job {params.job:q} --out {output:q}')
+        logged('"$GUIDING_PYTHON" -m guiding.experiments.figures comparison --job {params.job:q} --out {output:q}')
 
 
 rule figure_convergence:
@@ -258,7 +258,7 @@ rule figure_convergence:
     params:
         job=lambda wc: json.dumps({"scenes": PLAN.config["experiments"].get("convergence", {}).get("scenes", [])}),
     shell:
-        logged('"$GUIDING_PYTHON" -m guiding.figures convergence --job {params.job:q} --out {output:q} {input:q}')
+        logged('"$GUIDING_PYTHON" -m guiding.experiments.figures convergence --job {params.job:q} --out {output:q} {input:q}')
 
 
 rule figure_heatmap:
@@ -274,7 +274,7 @@ rule figure_heatmap:
     log:
         out("logs/figures/table1_heatmap.log"),
     shell:
-        logged('"$GUIDING_PYTHON" -m guiding.figures heatmap --csv {input:q} --out {output:q}')
+        logged('"$GUIDING_PYTHON" -m guiding.experiments.figures heatmap --csv {input:q} --out {output:q}')
 
 
 rule provenance:
@@ -296,7 +296,7 @@ rule provenance:
         configfiles=lambda wc: os.pathsep.join(map(str, workflow.config_settings.configfiles)),
     shell:
         logged(
-            '"$GUIDING_PYTHON" -m guiding.harness provenance --config {params.config:q}'
+            '"$GUIDING_PYTHON" -m guiding.experiments.harness provenance --config {params.config:q}'
             " --configfiles {params.configfiles:q}"
             " --out-json {output.json:q} --out-html {output.html:q} {input:q}"
         )

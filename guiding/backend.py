@@ -13,7 +13,7 @@ import os
 import re
 from contextlib import contextmanager
 
-from .errors import GuidingError
+from guiding.errors import GuidingError
 
 VARIANTS = ("auto", "llvm_ad_rgb", "cuda_ad_rgb")
 MIN_LLVM = 16
@@ -34,6 +34,11 @@ HARDWARE_GATHER_CPUS = ("znver3",)
 #: everywhere.
 HARDWARE_GATHERS_ENV = "GUIDING_HARDWARE_GATHERS"
 _FAST_GATHER, _SLOW_GATHER = "+fast-gather", "-fast-gather"
+
+
+#: Called after every :func:`set_variant`: the package registers its Mitsuba plugins for the new variant here
+#: (``guiding/__init__.py``), so that this module imports nothing above it.
+VARIANT_HOOKS: list = []
 
 
 class BackendError(GuidingError):
@@ -107,9 +112,8 @@ def set_variant(variant: str = "auto", threads: int | None = None) -> str:
         if threads < 1:
             raise BackendError(f"thread count must be >= 1, got {threads}")
         dr.set_thread_count(threads)
-    from . import integrator  # registers the `guided_path` integrator for this variant
-
-    integrator.register()
+    for hook in VARIANT_HOOKS:
+        hook()
     return variant
 
 
@@ -118,7 +122,7 @@ def _target_functions():
     """The loaded ``libdrjit-core``'s ``jit_llvm_target_cpu``, ``…_features``, ``…_vector_width`` and
     ``jit_llvm_set_target``, which Dr.Jit's Python module does not expose; None where they are missing. Looked up
     once: ctypes' library objects and their functions refer to each other, and a cycle made at every call would
-    have the garbage collector run during frozen passes (see :mod:`guiding.frozen_pass`)."""
+    have the garbage collector run during frozen passes (see :mod:`guiding.render.frozen_pass`)."""
     import ctypes
 
     import drjit as dr

@@ -15,11 +15,11 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
-from .bench_command import command_bench
-from .errors import GuidingError
-from .output_dirs import output_dir, prepare_output_dir
-from .provenance import device_name, render_provenance
-from .sdtree_baseline import SCENE_STUDIES
+from guiding.bench.command import command_bench
+from guiding.errors import GuidingError
+from guiding.output_dirs import output_dir, prepare_output_dir
+from guiding.provenance import device_name, render_provenance
+from guiding.experiments.sdtree_baseline import SCENE_STUDIES
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
@@ -49,7 +49,7 @@ def _positive_float(text: str) -> float:
 
 
 def _memory_size(text: str) -> int:
-    from .methods import parse_size
+    from guiding.guides.methods import parse_size
 
     try:
         size = parse_size(text)
@@ -200,7 +200,7 @@ def _image_metadata(scene_name: str, args, method: str, integrator, budget, prov
     """What every EXR file of a render carries in its header (imageio.write_exr; the spp are added per file): the
     method and its guide's parameters, the render's parameters (``combine``: its final-image mode), seed, scene,
     variant, device and versions."""
-    from .provenance import software_versions
+    from guiding.provenance import software_versions
 
     guide = getattr(integrator, "guide", None)
     parameters = {"budget": asdict(budget), "max_depth": args.max_depth, "scale": args.scale, "combine": combine}
@@ -212,9 +212,11 @@ def _image_metadata(scene_name: str, args, method: str, integrator, budget, prov
 
 
 def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget, variant: str) -> dict:
-    from . import guide_state, imageio, strict_json
-    from .render import SnapshotWriter, render, resolve_combine
-    from .scenes import find_scene, load_scene
+    from guiding.experiments import guide_state
+    from guiding import imageio
+    from guiding import strict_json
+    from guiding.render.progressive import SnapshotWriter, render, resolve_combine
+    from guiding.scenes import find_scene, load_scene
 
     scene = load_scene(scene_name, args.scale, args.scene_dir)
     provenance = render_provenance(variant)
@@ -247,10 +249,10 @@ def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget
 
 
 def _command_render(args) -> None:
-    from .backend import set_variant
-    from .methods import check_method, make_guide
-    from .render import Budget
-    from .scenes import find_scene
+    from guiding.backend import set_variant
+    from guiding.guides.methods import check_method, make_guide
+    from guiding.render.progressive import Budget
+    from guiding.scenes import find_scene
 
     budget = Budget(spp=args.spp, seconds=args.seconds, pass_spp=args.pass_spp, exclude_passes=args.exclude_passes,
                     growing_passes=not args.fixed_passes)
@@ -260,7 +262,7 @@ def _command_render(args) -> None:
     guide = make_guide(args.method, args.memory_limit)
     if args.save_guide and not guide.records():
         raise GuidingError(f"--save-guide: method '{args.method}' learns nothing to save")
-    from .integrator import GuidedPathIntegrator
+    from guiding.render.integrator import GuidedPathIntegrator
     import mitsuba as mi
 
     props = mi.Properties()
@@ -273,9 +275,9 @@ def _command_render(args) -> None:
 
 
 def _command_reference(args) -> None:
-    from .backend import set_variant
-    from .render import Budget
-    from .scenes import find_scene
+    from guiding.backend import set_variant
+    from guiding.render.progressive import Budget
+    from guiding.scenes import find_scene
 
     budget = Budget(spp=args.spp, pass_spp=min(args.pass_spp, args.spp))
     find_scene(args.scene, args.scene_dir)
@@ -289,14 +291,14 @@ def _command_reference(args) -> None:
 
 
 def _command_evaluate(args) -> None:
-    from . import strict_json
-    from .imageio import read_exr
-    from .metrics import evaluate
+    from guiding import strict_json
+    from guiding.imageio import read_exr
+    from guiding.metrics import evaluate
 
     image, ref = read_exr(args.image), read_exr(args.ref)
     metrics = evaluate(image, ref)
     if args.error_map:
-        from .figures import error_map
+        from guiding.experiments.figures import error_map
 
         error_map(image, ref, args.error_map)
     print(strict_json.dumps(metrics))
@@ -305,8 +307,8 @@ def _command_evaluate(args) -> None:
 def _command_show_guide(args) -> None:
     """Draw a saved guide's distribution in one cell: ``--cell``, the cell of the first vertex seen through
     ``--pixel``, or the best trained cell."""
-    from . import guide_state
-    from .backend import set_variant
+    from guiding.experiments import guide_state
+    from guiding.backend import set_variant
 
     folder = Path(args.render_dir)
     state = guide_state.load(folder / guide_state.STATE_FILE)
@@ -328,9 +330,9 @@ def _command_show_guide(args) -> None:
 
 def _command_demo(args) -> None:
     """Reference (cached) + each method at equal spp on one scene, and a Markdown table of the errors."""
-    from .backend import set_variant
-    from .methods import check_method
-    from .scenes import find_scene
+    from guiding.backend import set_variant
+    from guiding.guides.methods import check_method
+    from guiding.scenes import find_scene
 
     methods = [m for m in args.methods.split(",") if m]
     for method in methods:
@@ -340,8 +342,8 @@ def _command_demo(args) -> None:
     out = prepare_output_dir(args.out)
     import pandas as pd
 
-    from .imageio import read_exr
-    from .metrics import evaluate
+    from guiding.imageio import read_exr
+    from guiding.metrics import evaluate
 
     common = ["--scene", args.scene, "--scale", str(args.scale), "--variant", variant]
     reference = out / f"reference-{args.reference_spp}spp"
@@ -363,14 +365,14 @@ def _command_demo(args) -> None:
 
 
 def _command_validate(args) -> None:
-    from .backend import set_variant
+    from guiding.backend import set_variant
 
     variant = set_variant(args.variant, args.threads)
     out = prepare_output_dir(args.out)
-    from .bench import write_table
+    from guiding.bench.benchmark import write_table
     import pandas as pd
 
-    from .validation import (UNBIASEDNESS_METHODS, UNBIASEDNESS_SCENES, bounce_weight_table,
+    from guiding.experiments.validation import (UNBIASEDNESS_METHODS, UNBIASEDNESS_SCENES, bounce_weight_table,
                              refinement_table, smooth_share_table, unbiasedness_table)
 
     device = device_name(variant)
@@ -411,8 +413,8 @@ def _command_validate(args) -> None:
 
 def _validate_learning(args, out, device: str) -> None:
     """results/learning.md: every method's MAE and hit rate at equal spp on door-ajar."""
-    from .bench import write_table
-    from .validation import LEARNING_SEEDS, learning_table
+    from guiding.bench.benchmark import write_table
+    from guiding.experiments.validation import LEARNING_SEEDS, learning_table
 
     seeds = LEARNING_SEEDS[:1] if args.quick else LEARNING_SEEDS
     learning = learning_table(spp=64 if args.quick else 256, reference_spp=256 if args.quick else 4096, seeds=seeds)
@@ -423,8 +425,8 @@ def _validate_learning(args, out, device: str) -> None:
 
 
 def _command_sdtree_baseline(args) -> None:
-    from .backend import set_variant
-    from .scenes import find_scene
+    from guiding.backend import set_variant
+    from guiding.scenes import find_scene
 
     find_scene(args.scene)
     try:
@@ -435,8 +437,8 @@ def _command_sdtree_baseline(args) -> None:
                            "comma-separated numbers expected") from None
     if not seeds or not all(scale > 0 for scale in scales):
         raise GuidingError("sdtree-baseline: give at least one seed, and scales > 0")
-    from .bench_command import parse_scene_list
-    from .sdtree_baseline import PRESET_SCENES, equal_spp_table, scenes_table, threshold_table
+    from guiding.bench.command import parse_scene_list
+    from guiding.experiments.sdtree_baseline import PRESET_SCENES, equal_spp_table, scenes_table, threshold_table
 
     studies = {part: study for part, study in SCENE_STUDIES.items() if args.part in ("all", part)}
     study_scenes = parse_scene_list(args.preset_scenes) if args.preset_scenes else list(PRESET_SCENES)
@@ -445,7 +447,7 @@ def _command_sdtree_baseline(args) -> None:
             find_scene(name)
     variant = set_variant(args.variant, args.threads)
     out = prepare_output_dir(args.out)
-    from .bench import write_table
+    from guiding.bench.benchmark import write_table
 
     device = device_name(variant)
     cache = out / "sdtree_baseline"
@@ -486,7 +488,7 @@ def _command_sdtree_baseline(args) -> None:
 
 
 def _command_scenes(args) -> None:
-    from .scenes import available_scenes, search_path
+    from guiding.scenes import available_scenes, search_path
 
     for name in available_scenes():
         print(name)
@@ -494,7 +496,7 @@ def _command_scenes(args) -> None:
 
 
 def _command_methods(args) -> None:
-    from .methods import method_names
+    from guiding.guides.methods import method_names
 
     print("\n".join(method_names()))
 

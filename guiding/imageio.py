@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
-from . import strict_json
-from .errors import GuidingError
+from guiding import strict_json
+from guiding.errors import GuidingError
 
 
 @contextlib.contextmanager

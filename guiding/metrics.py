@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from .errors import GuidingError
+from guiding.errors import GuidingError
 
 #: relMSE's denominator offset, so black reference pixels do not dominate.
 RELMSE_EPSILON = 0.01

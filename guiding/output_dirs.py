@@ -7,7 +7,7 @@ import contextlib
 import os
 from pathlib import Path
 
-from .errors import GuidingError
+from guiding.errors import GuidingError
 
 
 def prepare_output_dir(path: str) -> Path:

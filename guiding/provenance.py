@@ -11,7 +11,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from .scenes import PROJECT_ROOT
+from guiding.scenes import PROJECT_ROOT
 
 
 def _command_output(args: list[str], cwd: str | os.PathLike = PROJECT_ROOT) -> str | None:
@@ -120,7 +120,7 @@ def device_name(variant: str, reads: bool = True) -> str:
     vectors = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else None
     # So are table reads: LLVM compiles them into gather instructions or into a scalar load per lane (on AVX2 CPUs
     # without AVX-512, guiding.backend.use_hardware_gathers decides; None: LLVM decides from the CPU's name).
-    from .backend import gathers_in_use
+    from guiding.backend import gathers_in_use
 
     table_reads = {True: "gather instructions", False: "scalar loads", None: None}[gathers_in_use()] if reads else None
     details = ", ".join(filter(None, [vectors, table_reads, f"{os.cpu_count()} threads"]))

@@ -14,7 +14,7 @@ import xml.etree.ElementTree as ElementTree
 from collections.abc import Iterable
 from pathlib import Path
 
-from .errors import GuidingError
+from guiding.errors import GuidingError
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 ENV_VAR = "GUIDING_SCENES"

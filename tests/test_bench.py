@@ -4,20 +4,20 @@ parsing of its kernel-size and profile parts."""
 import pandas as pd
 import pytest
 
-from guiding.bench import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, PassTiming, _guided_per_ray,
+from guiding.bench.benchmark import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, PassTiming, _guided_per_ray,
                            benchmark, breakdown_variants, interleaved_passes, paired_quartiles, target_table)
-from guiding.bench_child import child_failure
-from guiding.cpu_profile import parse_report, profile_table, table_access_share
+from guiding.bench.child import child_failure
+from guiding.bench.cpu_profile import parse_report, profile_table, table_access_share
 from guiding.errors import GuidingError
-from guiding.kernel_size import kernel_table, parse_disassembly
-from guiding.methods import make_guide
+from guiding.bench.kernel_size import kernel_table, parse_disassembly
+from guiding.guides.methods import make_guide
 from guiding.scenes import load_scene
 
 
 def test_tree_breakdown_samples_the_methods_own_trees():
     """The trees' ``[no record]`` stage samples the method's trees as they are at each of its passes (not trees of
     its own that stopped learning, coarser than the method's), and records and updates nothing itself."""
-    from guiding.integrator import GuidedPathIntegrator
+    from guiding.render.integrator import GuidedPathIntegrator
 
     scene = load_scene("cornell-box", 1 / 16)
     method = GuidedPathIntegrator(guide=make_guide("quadtree-grid"))
@@ -55,7 +55,7 @@ def test_hot_rows_instrument_draws_and_looks_up_in_the_first_row():
     import mitsuba as mi
     import numpy as np
 
-    from guiding.guides.grid import GridGuide, _Vertex
+    from guiding.guides.grid.guide import GridGuide, _Vertex
 
     guides = {stage: GridGuide(spatial_resolution=2, directional_resolution=4, rule="sarsa", sampler="hemi_rej_plus",
                                proposal="bins", profile_stage=stage) for stage in (None, "hot_rows")}
@@ -212,8 +212,8 @@ def test_kernel_samples_at_table_accesses():
 def test_fixed_passes_split_into_kernels_updates_and_the_rest():
     """`bench --part pass-schedule` splits a render's counted seconds (compilation left out) into the kernels'
     execution, the updates, and the rest of the passes; the three add up to the counted seconds."""
-    from guiding.bench import _pass_parts
-    from guiding.render import PassStats
+    from guiding.bench.benchmark import _pass_parts
+    from guiding.render.progressive import PassStats
 
     passes = [PassStats(0, 8, 8, seconds=0.05, update_seconds=0.02, compile_seconds=0.01, kernels_launched=2,
                         kernels_compiled=1, hit_rate=0.5, kernel_seconds=0.03),
@@ -280,7 +280,8 @@ def test_a_missed_target_names_the_part_of_the_bounce_its_time_goes_to():
 def test_gathers_part_times_both_builds_of_every_method(monkeypatch):
     """``bench --part gathers``: each method (after ``path`` and ``brdf``) in both builds, the build chosen before
     each of its passes, and the target as it was restored afterwards."""
-    from guiding import backend, gather_bench
+    from guiding import backend
+    from guiding.bench import gathers as gather_bench
 
     before = backend.gathers_in_use()
     choices = []

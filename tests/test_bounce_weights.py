@@ -10,10 +10,10 @@ here (results/grid_unbiasedness.md).
 import pytest
 
 from guiding.guides import RULES, SAMPLERS
-from guiding.guides.grid import GridGuide
-from guiding.methods import make_guide
+from guiding.guides.grid.guide import GridGuide
+from guiding.guides.methods import make_guide
 from guiding.scenes import load_scene
-from guiding.testing import scene_vertices, single_bounce_weights, train
+from guiding.experiments.testing import scene_vertices, single_bounce_weights, train
 
 METHODS = ["brdf", "sdtree", "quadtree-grid", "ours-uniform-proposals"] + [f"{rule}-{sampler}" for rule in RULES
                                                                           for sampler in SAMPLERS]

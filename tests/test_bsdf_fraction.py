@@ -6,10 +6,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from guiding.guides.bsdf_fraction import MAX_SHARE, MAX_STEP, MIN_SHARE, MIN_VERTICES, LearnedBsdfFraction
-from guiding.integrator import GuidedPathIntegrator
-from guiding.methods import make_guide
-from guiding.render import Budget, render
+from guiding.guides.trees.bsdf_fraction import MAX_SHARE, MAX_STEP, MIN_SHARE, MIN_VERTICES, LearnedBsdfFraction
+from guiding.render.integrator import GuidedPathIntegrator
+from guiding.guides.methods import make_guide
+from guiding.render.progressive import Budget, render
 
 
 def _record(fraction, tree, c, s):

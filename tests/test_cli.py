@@ -9,7 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from guiding import backend, guide_state, imageio
+from guiding import backend
+
+from guiding.experiments import guide_state
+
+from guiding import imageio
 from guiding.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent

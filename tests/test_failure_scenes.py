@@ -14,7 +14,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from guiding.guides.grid import guidable
+from guiding.guides.grid.guide import guidable
 from guiding.scenes import load_scene
 
 #: Camera rays on a regular grid over the film: 256 × 144 rays are at most 0.29° apart at the scenes' 65–68° field

@@ -20,7 +20,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from guiding.methods import method_names
+from guiding.guides.methods import method_names
 
 #: Pass sizes: the first passes alike (the learning passes), then a pass size met before, after another one.
 SCHEDULE = (2, 2, 2, 4, 2, 4, 8, 4)
@@ -38,9 +38,9 @@ SDTREE_STOP = 5
 def _passes(scene, method: str, freeze: bool) -> tuple[list, list, int | None]:
     """The pass images, update statistics and path counts of one render of ``SCHEDULE``, and the frozen
     recordings made."""
-    from guiding.driver import PassDriver
-    from guiding.integrator import GuidedPathIntegrator
-    from guiding.methods import make_guide
+    from guiding.render.driver import PassDriver
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.guides.methods import make_guide
 
     props = mi.Properties()
     props["freeze"] = freeze
@@ -64,8 +64,8 @@ def _passes(scene, method: str, freeze: bool) -> tuple[list, list, int | None]:
 def _compare(scene_name: str) -> dict:
     """Per method: the largest difference of a pass image, whether the statistics agree, the recordings made. Then,
     under ``OUTSIDE_BSDF``, whether the scene is recordable and its passes frozen with a BSDF alive outside it."""
-    from guiding.frozen_pass import recordable
-    from guiding.integrator import GuidedPathIntegrator
+    from guiding.render.frozen_pass import recordable
+    from guiding.render.integrator import GuidedPathIntegrator
     from guiding.scenes import load_scene
 
     scene = load_scene(scene_name, scale=0.125)
@@ -101,8 +101,8 @@ def test_frozen_passes_render_what_traced_passes_render(comparison, method):
 
 def test_device_arrays_finds_every_table_once():
     """The replay's inputs: the arrays reachable through attributes, containers and nested objects, each once."""
-    from guiding.frozen_pass import device_arrays
-    from guiding.methods import make_guide
+    from guiding.render.frozen_pass import device_arrays
+    from guiding.guides.methods import make_guide
 
     guide = make_guide("ours-plus")
     table = guide.record_table

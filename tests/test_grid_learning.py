@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from guiding.guides.alias_rows import SLOT_FIELDS
-from guiding.guides.grid import GridGuide, GridVertex
-from guiding.guides.grid_record import PAIR_FIELDS
-from guiding.guides.vertex_log import NO_RECORD
+from guiding.guides.grid.guide import GridGuide, GridVertex
+from guiding.guides.grid.record import PAIR_FIELDS
+from guiding.guides.grid.vertex_log import NO_RECORD
 
 ALBEDO = 0.6
 
@@ -155,9 +155,9 @@ def test_running_mean_and_exploration():
 @pytest.mark.parametrize("method", ["sarsa-sphere_inv", "sarsa-hemi_inv", "ours", "ours-no-rejopt", "ours-expected"])
 def test_guiding_starts_at_the_second_pass(cornell, method):
     """Pass 0 samples the BSDF only; pass 1 already guides (the hemisphere samplers' memo covers pass 0's pairs)."""
-    from guiding.integrator import GuidedPathIntegrator
-    from guiding.methods import make_guide
-    from guiding.driver import render_pass
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.guides.methods import make_guide
+    from guiding.render.driver import render_pass
 
     guide = make_guide(method, statistics=True)
     integrator = GuidedPathIntegrator(guide=guide)
@@ -172,9 +172,9 @@ def test_guiding_starts_at_the_second_pass(cornell, method):
 def test_statistics_counters_only_when_asked_for(cornell):
     """The per-pass counters (atomics on every bounce) are off by default: the update reports no counter figures,
     and the pass's kernel has no counter atomics; ``statistics=True`` brings them back."""
-    from guiding.driver import render_pass
-    from guiding.integrator import GuidedPathIntegrator
-    from guiding.methods import make_guide
+    from guiding.render.driver import render_pass
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.guides.methods import make_guide
 
     for statistics in (False, True):
         guide = make_guide("ours", statistics=statistics)
@@ -212,7 +212,7 @@ def test_rebuild_growth_rebuilds_geometrically_and_keeps_every_target():
 
 
 def test_ours_plus_rebuilds_less_often_than_the_paper():
-    from guiding.methods import make_guide
+    from guiding.guides.methods import make_guide
 
     assert make_guide("ours").rebuild_growth == 0
     assert make_guide("ours-plus").rebuild_growth > 0

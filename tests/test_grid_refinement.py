@@ -1,11 +1,11 @@
-"""Which refined bins are sampled and which still learn (ours-plus's sub-bins, `guiding.guides.grid_refinement`)."""
+"""Which refined bins are sampled and which still learn (ours-plus's sub-bins, `guiding.guides.grid.refinement`)."""
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from guiding.directions import SphereBins
-from guiding.guides.grid_refinement import REFINE_VISITS, SAMPLING_GAIN, SETTLED_VISITS, BinRefinement
+from guiding.guides.directions import SphereBins
+from guiding.guides.grid.refinement import REFINE_VISITS, SAMPLING_GAIN, SETTLED_VISITS, BinRefinement
 
 R = 4
 ENTRIES = 2 * 8       # two cells of 2·2² bins

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from guiding.guides import PROPOSALS, SAMPLERS
-from guiding.guides.grid import GridGuide
-from guiding.guides.grid_refinement import REFINE_VISITS
-from guiding.testing import GuideAdapter, chi_square
+from guiding.guides.grid.guide import GridGuide
+from guiding.guides.grid.refinement import REFINE_VISITS
+from guiding.experiments.testing import GuideAdapter, chi_square
 
 
 def _trained_guide(sampler: str, proposal: str, D: int, table: str, normal, visits: float = 1,

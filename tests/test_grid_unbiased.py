@@ -10,11 +10,11 @@ so the pass means are not heavy-tailed and the verdict does not hinge on a rare 
 import mitsuba as mi
 import pytest
 
-from guiding.driver import PassDriver, pass_seed
-from guiding.integrator import GuidedPathIntegrator
-from guiding.methods import make_guide
+from guiding.render.driver import PassDriver, pass_seed
+from guiding.render.integrator import GuidedPathIntegrator
+from guiding.guides.methods import make_guide
 from guiding.scenes import load_scene
-from guiding.validation import (UNBIASEDNESS_METHODS, UNBIASEDNESS_SCENES, Z_LIMIT, pass_means, path_reference,
+from guiding.experiments.validation import (UNBIASEDNESS_METHODS, UNBIASEDNESS_SCENES, Z_LIMIT, pass_means, path_reference,
                                 relative_standard_error, z_scores)
 
 #: The test must be able to fail: a relative bias of Z_LIMIT times this would be detected (the tilted scene's former
@@ -67,7 +67,7 @@ def test_ours_plus_agrees_with_path_on_glossy_surfaces():
 def test_ours_learns():
     """At equal spp, `ours` finds the light more often and has a lower error than BSDF sampling."""
     from guiding.metrics import mae_tonemapped
-    from guiding.render import Budget, render
+    from guiding.render.progressive import Budget, render
 
     scene = load_scene("door-ajar", scale=0.2)
     ref = render(scene, mi.load_dict({"type": "path", "max_depth": 16}), Budget(spp=1024, pass_spp=64), seed=7,

@@ -1,14 +1,14 @@
 """What `render --save-guide` saves and `show-guide` draws: the directional distribution a trained guide samples
-from, read from the guide itself (guiding.guide_state), for the grid guide and the SD-tree."""
+from, read from the guide itself (guiding.experiments.guide_state), for the grid guide and the SD-tree."""
 
 import math
 
 import numpy as np
 import pytest
 
-from guiding import guide_state
-from guiding.methods import make_guide
-from guiding.testing import train
+from guiding.experiments import guide_state
+from guiding.guides.methods import make_guide
+from guiding.experiments.testing import train
 from tree_helpers import lookup_np
 
 

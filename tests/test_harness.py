@@ -21,7 +21,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from guiding import evaluation, figures, harness, imageio, tables
+from guiding.experiments import evaluation
+
+from guiding.experiments import figures
+
+from guiding.experiments import harness
+
+from guiding import imageio
+
+from guiding.experiments import tables
 from guiding.errors import GuidingError
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -6,7 +6,11 @@ import json
 import numpy as np
 import pytest
 
-from guiding import backend, imageio, scenes
+from guiding import backend
+
+from guiding import imageio
+
+from guiding import scenes
 from guiding.errors import GuidingError
 
 
@@ -143,9 +147,9 @@ def test_gather_instructions_and_scalar_loads_render_the_same_bits(cornell):
     """Table reads compiled into gather instructions or into scalar loads (guiding.backend.use_hardware_gathers; on
     a CPU with AVX-512, or without AVX2, both builds are LLVM's own) give bit-identical passes, the guide's learning
     between them included."""
-    from guiding.driver import PassDriver, pass_seed
-    from guiding.integrator import GuidedPathIntegrator
-    from guiding.methods import make_guide
+    from guiding.render.driver import PassDriver, pass_seed
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.guides.methods import make_guide
 
     images = {}
     with backend.llvm_target_kept():
@@ -168,7 +172,7 @@ def test_each_build_compiles_the_table_reads_it_reports(capfd):
     import drjit as dr
     import mitsuba as mi
 
-    from guiding.kernel_size import parse_disassembly
+    from guiding.bench.kernel_size import parse_disassembly
 
     level = dr.log_level()
     with backend.llvm_target_kept():

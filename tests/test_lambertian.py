@@ -1,4 +1,4 @@
-"""Lambertian BSDFs computed inline (`guiding.guides.lambertian`): the same values, densities, samples and weights
+"""Lambertian BSDFs computed inline (`guiding.guides.grid.lambertian`): the same values, densities, samples and weights
 as Mitsuba's own `eval_pdf_sample`, on both sides of one- and two-sided diffuse surfaces, and Mitsuba's call kept
 for every other BSDF, even those whose flags say diffuse."""
 
@@ -7,10 +7,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from guiding.guides.grid import GridGuide
-from guiding.guides.lambertian import BOTH_SIDES, FRONT_SIDE, NOT_LAMBERTIAN, LambertianBsdfs, lambertian_sides
-from guiding.methods import make_guide
-from guiding.testing import train
+from guiding.guides.grid.guide import GridGuide
+from guiding.guides.grid.lambertian import BOTH_SIDES, FRONT_SIDE, NOT_LAMBERTIAN, LambertianBsdfs, lambertian_sides
+from guiding.guides.methods import make_guide
+from guiding.experiments.testing import train
 
 TEXTURE = {"type": "checkerboard", "color0": {"type": "rgb", "value": [0.8, 0.1, 0.2]},
            "color1": {"type": "rgb", "value": [0.1, 0.6, 0.3]}}

@@ -1,17 +1,17 @@
-"""Growing passes (:mod:`guiding.pass_schedule`): sizes, the limits each guide sets, and one render kernel for
+"""Growing passes (:mod:`guiding.render.pass_schedule`): sizes, the limits each guide sets, and one render kernel for
 every pass size."""
 
 import drjit as dr
 import numpy as np
 import pytest
 
-from guiding.driver import PassDriver, pass_seed, render_pass
-from guiding.guides.grid import GridGuide
-from guiding.guides.sdtree import SDTreeGuide
-from guiding.integrator import GuidedPathIntegrator
-from guiding.methods import make_guide
-from guiding.pass_schedule import MAX_PASS_PATHS, MIN_ITERATION_PASSES, PassSchedule
-from guiding.render import Budget, render
+from guiding.render.driver import PassDriver, pass_seed, render_pass
+from guiding.guides.grid.guide import GridGuide
+from guiding.guides.trees.sdtree import SDTreeGuide
+from guiding.render.integrator import GuidedPathIntegrator
+from guiding.guides.methods import make_guide
+from guiding.render.pass_schedule import MAX_PASS_PATHS, MIN_ITERATION_PASSES, PassSchedule
+from guiding.render.progressive import Budget, render
 
 
 def test_passes_double_up_to_the_tightest_limit_in_powers_of_two():

@@ -5,10 +5,10 @@ import mitsuba as mi
 import numpy as np
 
 import guiding  # noqa: F401  (registers guided_path for the variant the tests set)
-from guiding.integrator import GuidedPathIntegrator
-from guiding.methods import make_guide
+from guiding.render.integrator import GuidedPathIntegrator
+from guiding.guides.methods import make_guide
 from guiding.metrics import mae_tonemapped
-from guiding.render import Budget, render
+from guiding.render.progressive import Budget, render
 from guiding.scenes import load_scene
 
 SPP = 256

@@ -8,9 +8,9 @@ import pytest
 
 from guiding.errors import GuidingError
 from guiding.imageio import read_exr
-from guiding.integrator import GuidedPathIntegrator
-from guiding.driver import pass_seed
-from guiding.render import (Budget, combine_iterations, extrapolated_variance, is_snapshot_spp,
+from guiding.render.integrator import GuidedPathIntegrator
+from guiding.render.driver import pass_seed
+from guiding.render.progressive import (Budget, combine_iterations, extrapolated_variance, is_snapshot_spp,
                             iteration_variance, render)
 
 
@@ -77,7 +77,7 @@ class FakeClock:
     def __init__(self, monkeypatch, cost_per_spp: float):
         import types
 
-        import guiding.driver as driver_module
+        import guiding.render.driver as driver_module
 
         self.now = 0.0
         real_pass, real_costs = driver_module.render_pass, driver_module.KernelCosts.from_history
@@ -189,7 +189,7 @@ def test_inverse_variance_combination_weights():
 def test_progress_lines_off_a_terminal_and_a_bar_with_eta_on_request(cornell, capsys, monkeypatch):
     """Not on a terminal (a Snakemake log) the default is plain lines with an ETA, at most one per
     PROGRESS_LINE_SECONDS and one at the end; progress=True is tqdm's bar; False shows nothing."""
-    import guiding.render as render_module
+    import guiding.render.progressive as render_module
 
     integrator = GuidedPathIntegrator()
     monkeypatch.setattr(render_module, "PROGRESS_LINE_SECONDS", 1e9)   # a slow machine must not add lines
@@ -213,8 +213,8 @@ def test_a_scene_with_nothing_to_guide_renders_the_bsdf_path_loop(method, monkey
     """In mirror-box (delta BSDFs only) a guided method traces BSDF sampling without the guide's code (its
     ``sample`` and ``record`` are never traced): its passes are `brdf`'s, sample for sample (same seeds), while its
     guide still updates between them. In cornell-box the guide is traced."""
-    from guiding.driver import PassDriver
-    from guiding.methods import make_guide
+    from guiding.render.driver import PassDriver
+    from guiding.guides.methods import make_guide
     from guiding.scenes import load_scene
 
     traced = []
@@ -242,7 +242,7 @@ def test_a_scene_with_instances_counts_as_guided():
     guide."""
     import mitsuba as mi
 
-    from guiding.methods import make_guide
+    from guiding.guides.methods import make_guide
 
     scene = mi.load_dict({"type": "scene", "group": {"type": "shapegroup", "ball": {"type": "sphere",
                                                                                   "bsdf": {"type": "conductor"}}},
@@ -253,7 +253,7 @@ def test_a_scene_with_instances_counts_as_guided():
 def test_a_scene_with_nothing_to_guide_never_updates_the_guide():
     """mirror-box holds delta lobes only: the passes are BSDF sampling, the guide is never updated (it would rebuild
     empty tables after every pass), and the passes grow as a guide-less render's do."""
-    from guiding.methods import make_guide
+    from guiding.guides.methods import make_guide
     from guiding.scenes import load_scene
 
     integrator = GuidedPathIntegrator(guide=make_guide("ours"))

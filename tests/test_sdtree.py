@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 from mitsuba.chi2 import LineDomain
 
-from guiding.guides.bsdf_fraction import LearnedBsdfFraction
-from guiding.guides.dtree import LEAF_BIT, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
-from guiding.guides.sdtree import QuadtreeGridGuide, SDTreeGuide, TreeVertex
-from guiding.guides.stree import STree
-from guiding.integrator import GuidedPathIntegrator
-from guiding.testing import GuideAdapter, ReplaySampler, chi_square, diffuse_vertex
-from guiding.validation import Z_LIMIT, pass_means, z_scores
+from guiding.guides.trees.bsdf_fraction import LearnedBsdfFraction
+from guiding.guides.trees.dtree import LEAF_BIT, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest
+from guiding.guides.trees.sdtree import QuadtreeGridGuide, SDTreeGuide, TreeVertex
+from guiding.guides.trees.stree import STree
+from guiding.render.integrator import GuidedPathIntegrator
+from guiding.experiments.testing import GuideAdapter, ReplaySampler, chi_square, diffuse_vertex
+from guiding.experiments.validation import Z_LIMIT, pass_means, z_scores
 from test_render import FakeClock
 from tree_helpers import doubling_schedule, lookup_np, nested_forest
 
@@ -287,7 +287,7 @@ def test_empty_dtrees_are_uniform_once_built():
 @pytest.mark.parametrize("bsdf_dict", [{"type": "plastic"},
                                        {"type": "blendbsdf", "weight": 0.4, "bsdf_0": {"type": "diffuse"},
                                         "bsdf_1": {"type": "dielectric"}}], ids=["plastic", "diffuse+glass"])
-# The D-tree's leaf edges fall on the histogram's cell edges, where its density jumps: guiding.testing.sphere_domain
+# The D-tree's leaf edges fall on the histogram's cell edges, where its density jumps: guiding.experiments.testing.sphere_domain
 # keeps the density's evaluations inside their cells (before it, this test rejected 5 of 12 chi-square seeds).
 @pytest.mark.parametrize("share", [None, 0.7], ids=["fixed share", "learned share"])
 def test_smooth_part_of_a_bsdf_with_a_delta_lobe_is_guided(bsdf_dict, share):
@@ -603,7 +603,7 @@ def test_quadtree_grid_records_the_leaf_its_descent_found(cornell):
     leaves with the same energy (but for directions within rounding of a leaf's edge)."""
     import copy
 
-    from guiding.testing import train
+    from guiding.experiments.testing import train
 
     guide = train(cornell, QuadtreeGridGuide(spatial_resolution=4), spp=16)
     # The same tree, but not the same object: the recording leaf is looked up.
@@ -646,7 +646,7 @@ def _assert_same_leaves_recorded(integrator, scene, attribute: str, values: tupl
 
 
 def test_progressive_render_statistics_and_one_kernel(cornell):
-    from guiding.render import Budget, render
+    from guiding.render.progressive import Budget, render
 
     guide = SDTreeGuide(base_spp=8)
     result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128, pass_spp=8, growing_passes=False),
@@ -665,7 +665,7 @@ def test_progressive_render_statistics_and_one_kernel(cornell):
 
 
 def test_budget_makes_the_last_iteration_run_to_the_end_without_learning(cornell):
-    from guiding.render import Budget, render
+    from guiding.render.progressive import Budget, render
 
     guide = SDTreeGuide(base_spp=8, budget_spp=64)
     assert doubling_schedule(guide.base_spp, guide.budget_spp) == [(0, 8), (8, 24), (24, 64)]
@@ -683,7 +683,7 @@ def test_budget_makes_the_last_iteration_run_to_the_end_without_learning(cornell
 def test_iterations_in_the_render_result(cornell):
     """Per-iteration statistics (stats.json's `iterations`): the schedule's spp ranges, the hit rate of their
     passes, and the structure of the trees each training iteration built."""
-    from guiding.render import Budget, render
+    from guiding.render.progressive import Budget, render
 
     guide = SDTreeGuide(base_spp=8)
     result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128, pass_spp=8, growing_passes=False),
@@ -720,7 +720,7 @@ def test_iterations_in_the_render_result(cornell):
 ])
 def test_seconds_budget_stops_training_when_the_next_iteration_would_not_fit(cornell, monkeypatch, seconds,
                                                                               stop_spp, final_spp):
-    from guiding.render import Budget, render
+    from guiding.render.progressive import Budget, render
 
     FakeClock(monkeypatch, cost_per_spp=1e-3)   # 1 ms per spp, and compilation free
     guide = SDTreeGuide(base_spp=8)
@@ -745,7 +745,7 @@ def test_seconds_budget_stops_training_when_the_next_iteration_would_not_fit(cor
 def test_seconds_budget_training_decisions_match_the_measured_times(cornell):
     """Real timings: every iteration boundary's decision, recomputed from the per-pass record (seconds per spp of
     the iteration that ended × the next iteration's base_spp·2^(k+1) spp, against the budget left)."""
-    from guiding.render import Budget, render
+    from guiding.render.progressive import Budget, render
 
     budget = Budget(seconds=1.5, pass_spp=8)
     guide = SDTreeGuide(base_spp=8)
@@ -791,7 +791,7 @@ def _iteration_images(pass_records):
 
 
 def test_inverse_variance_image_is_the_weighted_mean_of_the_last_four_iterations(cornell):
-    from guiding.render import Budget, render
+    from guiding.render.progressive import Budget, render
 
     records = []
     guide = SDTreeGuide(base_spp=4)
@@ -816,7 +816,7 @@ def test_inverse_variance_combination_matches_mitsuba_path(cornell, cornell_refe
     """Unbiased in practice: the image means of independent renders agree with Mitsuba's `path` integrator. (The
     weights come from the same samples as the images, a correlation that a strict proof would have to rule out;
     this bounds its effect.)"""
-    from guiding.render import Budget, render
+    from guiding.render.progressive import Budget, render
 
     renders = 24
     means = []
@@ -834,8 +834,8 @@ def test_inverse_variance_combination_matches_mitsuba_path(cornell, cornell_refe
 def test_sdtree_combines_by_inverse_variance_unless_told(cornell):
     """Müller 2019's combination is the `sdtree` method's final image; `sdtree-last` (and combine="last") is the
     2017 paper's; a guide without iterations has one image whatever the mode."""
-    from guiding.methods import make_guide
-    from guiding.render import Budget, render
+    from guiding.guides.methods import make_guide
+    from guiding.render.progressive import Budget, render
 
     budget = Budget(spp=56, pass_spp=8)
     result = render(cornell, GuidedPathIntegrator(guide=make_guide("sdtree")), budget, seed=5)
@@ -860,8 +860,8 @@ def test_automatic_budget_stops_training_once_the_extrapolated_variance_rises(co
     after AUTOMATIC_MIN_SPP (lowered to 0 here). Iterations of 8, 16, 32 spp: the first has one pass, no
     estimate; the second sets E ∝ 1/248 (1/0.248 s); the third's 1/232 is larger: stop at 56 spp, and the rest
     of the budget goes into the third iteration's image."""
-    import guiding.render as render_module
-    from guiding.render import Budget, render
+    import guiding.render.progressive as render_module
+    from guiding.render.progressive import Budget, render
 
     monkeypatch.setattr(render_module, "AUTOMATIC_MIN_SPP", 0)
     monkeypatch.setattr(render_module, "iteration_variance", _constant_sample_variance)
@@ -886,8 +886,8 @@ def test_automatic_budget_stops_training_once_the_extrapolated_variance_rises(co
 def test_automatic_budget_waits_for_a_reliable_variance(cornell, monkeypatch):
     """Tom94's guard: iterations that started before AUTOMATIC_MIN_SPP (256) spp never stop training, however
     their variance goes; the guide's own schedule ends it."""
-    import guiding.render as render_module
-    from guiding.render import Budget, render
+    import guiding.render.progressive as render_module
+    from guiding.render.progressive import Budget, render
 
     monkeypatch.setattr(render_module, "iteration_variance", _constant_sample_variance)
     result = render(cornell, GuidedPathIntegrator(guide=SDTreeGuide(base_spp=8)), Budget(spp=256, pass_spp=8),
@@ -899,8 +899,8 @@ def test_automatic_budget_waits_for_a_reliable_variance(cornell, monkeypatch):
 def test_automatic_budget_decisions_match_the_measured_variances(cornell, monkeypatch):
     """Real variances: every iteration boundary's decision, recomputed from the iterations' records (E_k =
     V_k·S_k / spp left at its start, against E_{k-1})."""
-    import guiding.render as render_module
-    from guiding.render import Budget, extrapolated_variance, render
+    import guiding.render.progressive as render_module
+    from guiding.render.progressive import Budget, extrapolated_variance, render
 
     monkeypatch.setattr(render_module, "AUTOMATIC_MIN_SPP", 0)
     budget = Budget(spp=504, pass_spp=8)

@@ -4,7 +4,7 @@ import pandas as pd
 import pytest
 
 from guiding.cli import main
-from guiding.sdtree_baseline import PRESET_VARIANTS, SHARE_VARIANTS, THRESHOLD_CONSTANTS, VARIANTS
+from guiding.experiments.sdtree_baseline import PRESET_VARIANTS, SHARE_VARIANTS, THRESHOLD_CONSTANTS, VARIANTS
 
 
 def test_sdtree_baseline_command_writes_its_tables(tmp_path):

@@ -5,9 +5,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from guiding.guides.sdtree import SDTreeGuide
-from guiding.guides.stree import STree, iteration_length, stree_locate
-from guiding.integrator import GuidedPathIntegrator
+from guiding.guides.trees.sdtree import SDTreeGuide
+from guiding.guides.trees.stree import STree, iteration_length, stree_locate
+from guiding.render.integrator import GuidedPathIntegrator
 from tree_helpers import doubling_schedule
 
 
@@ -45,8 +45,8 @@ def test_stree_splits_at_midpoints_cycling_axes():
 def test_stree_locate_from_the_start_table_finds_every_leaf():
     """The start table skips the first 3·START_LEVELS levels of the descent: on a tree with leaves above, at and far
     below that depth, every position finds the leaf a full descent from the root finds."""
-    from guiding import guide_state
-    from guiding.guides.stree import START_LEVELS
+    from guiding.experiments import guide_state
+    from guiding.guides.trees.stree import START_LEVELS
 
     rng = np.random.default_rng(7)
     stree = STree([-1, 0, 2], [3, 1, 2.5])
@@ -73,7 +73,7 @@ def test_doubling_schedule():
 def test_stree_threshold_grows_with_the_square_root_of_the_paths(cornell):
     """Tom94's c·sqrt(spp/4) at 1280 × 720, and c·sqrt(paths / (4·1280·720)) at any size: 375·sqrt(spp) at
     80 × 45; ``c_pixels`` set to the image's size gives the unscaled c·sqrt(spp/4)."""
-    from guiding.render import Budget, render
+    from guiding.render.progressive import Budget, render
 
     guide = SDTreeGuide()
     assert guide.stree_threshold(1280 * 720 * 4) == pytest.approx(12000)

@@ -3,9 +3,9 @@
 import mitsuba as mi
 import pytest
 
-from guiding.integrator import GuidedPathIntegrator
+from guiding.render.integrator import GuidedPathIntegrator
 
-from guiding.validation import Z_LIMIT, pass_means, z_scores
+from guiding.experiments.validation import Z_LIMIT, pass_means, z_scores
 
 
 def test_brdf_matches_mitsuba_path(cornell):

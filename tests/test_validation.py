@@ -2,7 +2,7 @@
 
 import pytest
 
-from guiding import validation
+from guiding.experiments import validation
 
 
 def test_learning_table_reports_the_mean_and_standard_error_over_seeds(monkeypatch):

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from guiding.guides.dtree import Forest
-from guiding.guides.stree import iteration_length
+from guiding.guides.trees.dtree import Forest
+from guiding.guides.trees.stree import iteration_length
 
 
 def nested_forest(trees: list) -> Forest:
@@ -67,7 +67,7 @@ def lookup_np(forest: Forest, trees: np.ndarray, uv: np.ndarray) -> tuple[np.nda
 
 def doubling_schedule(base_spp: int, budget_spp: int | None = None, iterations: int = 40) -> list[tuple[int, int]]:
     """``[(start, end)]`` in spp of the training iterations of an SD-tree guide with ``base_spp`` and
-    ``budget_spp`` (:func:`~guiding.guides.stree.iteration_length`): the first ``iterations`` without a budget,
+    ``budget_spp`` (:func:`~guiding.guides.trees.stree.iteration_length`): the first ``iterations`` without a budget,
     all of them up to its end with one."""
     bounds, start, k = [], 0, 0
     while (budget_spp is None and k < iterations) or (budget_spp is not None and start < budget_spp):

@@ -5,8 +5,8 @@ device-side part called from inside the Dr.Jit path loop (``new_paths``, ``sampl
 ``finish_paths``). See :class:`guiding.guides.base.Guide`.
 """
 
-from .base import Guide, NoPathState, UpdateResult
-from .parameters import PROPOSALS, RULES, SAMPLERS, default_proposal
-from .bsdf import BSDFGuide
+from guiding.guides.base import Guide, NoPathState, UpdateResult
+from guiding.guides.parameters import PROPOSALS, RULES, SAMPLERS, default_proposal
+from guiding.guides.bsdf import BSDFGuide
 
 __all__ = ["Guide", "NoPathState", "UpdateResult", "BSDFGuide", "RULES", "SAMPLERS", "PROPOSALS", "default_proposal"]

@@ -1,4 +1,4 @@
-"""The Guide interface: one path loop (:mod:`guiding.integrator`), many ways to choose directions."""
+"""The Guide interface: one path loop (:mod:`guiding.render.integrator`), many ways to choose directions."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 
-from .parameters import COMBINE_LAST
+from guiding.guides.parameters import COMBINE_LAST
 
 
 def rgb_mean(spectrum: mi.Spectrum) -> mi.Float:
@@ -54,7 +54,7 @@ class Guide:
     #: Short method name, as used on the command line and in tables.
     name = "guide"
     #: The final image a renderer makes of this guide's iterations unless told otherwise (``combine`` of
-    #: :func:`guiding.render.render`; one of :data:`~guiding.guides.parameters.COMBINE_MODES`). A guide without
+    #: :func:`guiding.render.progressive.render`; one of :data:`~guiding.guides.parameters.COMBINE_MODES`). A guide without
     #: iterations has one, which every mode returns.
     combine = COMBINE_LAST
 
@@ -83,7 +83,7 @@ class Guide:
 
     def trace_key(self) -> tuple:
         """The host-side values that shape the traced path loop (Python branches, literals): a pass whose key is
-        new traces it, the others replay a recording (:mod:`guiding.frozen_pass`). Tables are not part of it: every
+        new traces it, the others replay a recording (:mod:`guiding.render.frozen_pass`). Tables are not part of it: every
         Dr.Jit array of the guide is an input of the replay."""
         return (self.records(),)
 

@@ -1,6 +1,6 @@
 """The unguided baseline: plain BSDF importance sampling (the paper's "BRDF" column)."""
 
-from .base import Guide
+from guiding.guides.base import Guide
 
 
 class BSDFGuide(Guide):

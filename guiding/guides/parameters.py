@@ -1,7 +1,7 @@
 """The parameters of each guide, as typed values with their defaults (one dataclass per guide).
 
 A guide is built from its parameters (``GridGuide(GridParameters(rule="mc"))``, or with keyword overrides,
-``GridGuide(rule="mc")``); a method of :mod:`guiding.methods` is a name for a guide class and one of these values.
+``GridGuide(rule="mc")``); a method of :mod:`guiding.guides.methods` is a name for a guide class and one of these values.
 They are plain dataclasses: they can be built, checked and compared before a Mitsuba variant is set.
 """
 
@@ -15,7 +15,7 @@ RULES = ("mc", "sarsa", "expected_sarsa")
 GUIDED_BSDFS = ("diffuse", "smooth")
 SAMPLERS = ("sphere_inv", "hemi_inv", "hemi_rej", "hemi_rej_plus")
 #: How the rejection samplers draw their target: ``bins`` (exactly: a bin from the pair's alias table of P·∫cos, then a
-#: direction ∝ cos inside it) or the paper's loop of ``uniform`` proposals (see :mod:`guiding.guides.grid`).
+#: direction ∝ cos inside it) or the paper's loop of ``uniform`` proposals (see :mod:`guiding.guides.grid.guide`).
 PROPOSALS = ("bins", "uniform")
 #: Benchmark instrument (``profile_stage`` of :class:`GridParameters`): the parts of the grid guide's bounce, switched
 #: on one by one. ``classify`` looks the vertex up and computes the guided mask, then uses the BSDF's sample;
@@ -39,16 +39,16 @@ PROFILE_BSDF_PATHS = "bsdf_paths"
 #: third shorter).
 PROFILE_HOT_ROWS = "hot_rows"
 
-#: Least BSDF share of the rejection samplers (see :mod:`guiding.guides.grid`): it bounds hemi_rej's weight by 5·ρ
+#: Least BSDF share of the rejection samplers (see :mod:`guiding.guides.grid.guide`): it bounds hemi_rej's weight by 5·ρ
 #: per bounce (measured at door-ajar's vertices, results/bounce_weights.md: second moment 1.6·ρ², against 1.8 at 0.1
 #: and 1.9 at 0.05). At 0.1 (10·ρ) the products of several such bounces were still heavy-tailed: on door-ajar one of
 #: 24 passes of sarsa-hemi_rej came out at 2.4× the mean, doubling the pass means' standard error.
 MIN_BSDF_SHARE = 0.2
-#: The range of a BSDF share the tree guides learn (``learn_bsdf_fraction``; :mod:`~guiding.guides.bsdf_fraction`):
+#: The range of a BSDF share the tree guides learn (``learn_bsdf_fraction``; :mod:`~guiding.guides.trees.bsdf_fraction`):
 #: the floor is the grid's ``min_bsdf_share``, for the same bound on the weights.
 LEARNED_SHARE_RANGE = (MIN_BSDF_SHARE, 0.95)
 #: How a renderer makes the final image of a guide whose learning runs in iterations (the SD-tree's doubling
-#: schedule; :mod:`guiding.render`): ``last``, the last iteration alone (Müller et al. 2017's paper); ``automatic``,
+#: schedule; :mod:`guiding.render.progressive`): ``last``, the last iteration alone (Müller et al. 2017's paper); ``automatic``,
 #: the last iteration alone, training stopped early once the variance extrapolated to the end of the budget stops
 #: falling (Tom94's ``sampleCombination="automatic"``, the default of his guided_path.cpp); ``inverse-variance``,
 #: the last four iterations weighted by the inverse of their variance (Müller 2019, his "improved" preset).
@@ -99,7 +99,7 @@ def with_overrides(parameters, overrides: dict):
 
 @dataclass(frozen=True)
 class GridParameters:
-    """Kim & Kim's grid guide (:class:`~guiding.guides.grid.GridGuide`): a ``S³ × 2·D²`` radiance record, a learning
+    """Kim & Kim's grid guide (:class:`~guiding.guides.grid.guide.GridGuide`): a ``S³ × 2·D²`` radiance record, a learning
     rule and a sampler.
 
     Parameters:
@@ -120,14 +120,14 @@ class GridParameters:
         SD-tree's mixture): the guide knows nothing of a glossy lobe, the BSDF's sampling covers it.
       sub_resolution: R > 1 cuts each bin that holds at least ``refine_share`` of its cell's policy (once visited
         often enough) into R × R equal-area sub-bins whose distribution is learned too, and sampled where it is far
-        enough from uniform (:mod:`~guiding.guides.grid_refinement`; ``bins`` proposal only); default 1, no
+        enough from uniform (:mod:`~guiding.guides.grid.refinement`; ``bins`` proposal only); default 1, no
         refinement.
       refine_share: least policy share of a refined (cell, bin) entry (default 0.05, 25× a uniform bin's at D = 16).
       refine_capacity: most entries refined (default 4096; their tables are allocated up front).
       rebuild_growth: g ≥ 0: the record is rebuilt (Q, policy, memo tables, refinement) after a pass only once the
         spp reach the next multiple of the largest power of two ≤ g × the spp at the last rebuild (the spp grow by
         at most g between rebuilds, and the passes in between can be merged into one of a power-of-two size,
-        :mod:`guiding.pass_schedule`); the targets of the passes in between are kept and folded in at the next
+        :mod:`guiding.render.pass_schedule`); the targets of the passes in between are kept and folded in at the next
         rebuild. Default 0: after every pass (the paper's).
       statistics: count, per pass, guided vertices, invalid samples, rejection proposals and acceptances (default
         False). The counters are atomics on 1-element arrays, several per bounce (measured: ``ours`` 301 against
@@ -208,10 +208,10 @@ class TreeParameters:
         delta lobe samples the BSDF alone (default False; the SD-tree's default is True). Purely delta BSDFs are
         never guided.
       learn_bsdf_fraction: each D-tree learns its own BSDF share, starting at ``bsdf_fraction``, by minimising the
-        KL divergence from the product f·cos·L to the mixture (Müller 2019; :mod:`~guiding.guides.bsdf_fraction`),
+        KL divergence from the product f·cos·L to the mixture (Müller 2019; :mod:`~guiding.guides.trees.bsdf_fraction`),
         within :data:`LEARNED_SHARE_RANGE`; False: ``bsdf_fraction`` everywhere (default False).
       jump_levels: the D-tree levels a descent skips, reading where it stands after them from a table per cell of
-        side 2^-jump_levels (:class:`~guiding.guides.dtree.DeviceForest`; 4^jump_levels cells per tree, at most
+        side 2^-jump_levels (:class:`~guiding.guides.trees.dtree.DeviceForest`; 4^jump_levels cells per tree, at most
         4); 0: from the root (default 3).
     """
 
@@ -237,7 +237,7 @@ class TreeParameters:
 
 @dataclass(frozen=True)
 class SDTreeParameters(TreeParameters):
-    """Müller et al. 2017's SD-tree (:class:`~guiding.guides.sdtree.SDTreeGuide`) as Tom94's guided_path.cpp
+    """Müller et al. 2017's SD-tree (:class:`~guiding.guides.trees.sdtree.SDTreeGuide`) as Tom94's guided_path.cpp
     implements it: the fields of :class:`TreeParameters` (with ``uniform_empty_dtrees`` and
     ``guide_delta_mixtures`` on, as there), and
 
@@ -280,7 +280,7 @@ class SDTreeParameters(TreeParameters):
 
 @dataclass(frozen=True)
 class QuadtreeGridParameters(TreeParameters):
-    """Kim & Kim's "Quadtree" baseline (:class:`~guiding.guides.sdtree.QuadtreeGridGuide`): the fields of
+    """Kim & Kim's "Quadtree" baseline (:class:`~guiding.guides.trees.sdtree.QuadtreeGridGuide`): the fields of
     :class:`TreeParameters`, and
 
     Parameters:

@@ -1,6 +1,6 @@
 """A pass's sums of learning targets: float64 (sum, count) neighbours per entry, added in the path loop and folded
-into the totals between passes. Shared by the radiance record (:mod:`~guiding.guides.grid_record`) and its refined
-sub-bins (:mod:`~guiding.guides.grid_refinement`).
+into the totals between passes. Shared by the radiance record (:mod:`~guiding.guides.grid.record`) and its refined
+sub-bins (:mod:`~guiding.guides.grid.refinement`).
 
 The sum and count of an entry are neighbours in one array (one cache line for both), added without atomics where
 the CPU backend can give each thread a copy (``ReduceMode.Expand``, while the copies fit in :data:`EXPAND_BYTES`;

@@ -1,4 +1,4 @@
-"""Measuring the direction ↔ bin maps of :mod:`guiding.directions` (the concentric hemisphere pair ``SphereBins``
+"""Measuring the direction ↔ bin maps of :mod:`guiding.guides.directions` (the concentric hemisphere pair ``SphereBins``
 and the cube map of normals ``NormalBins``): float64 references computed from the maps' own float32 output, the
 inputs that are hard for them, and finders of the directions a map gets wrong."""
 
@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import mitsuba as mi
 import numpy as np
 
-from guiding.directions import NormalBins, SphereBins
+from guiding.guides.directions import NormalBins, SphereBins
 from arrays import EPS32, TINY32, angle_between, to_numpy, unit, vectors
 
 #: Directional resolutions D checked: 1 and 2 (one and four bins per hemisphere), odd ones (a bin centred on the
@@ -199,14 +199,14 @@ def round_trip_violations(index_of, direction_of, count: int) -> list[str]:
 
 @functools.lru_cache(maxsize=None)
 def sphere_bins_geometry(resolution: int) -> tuple:
-    """(:class:`~guiding.directions.SphereBins`, its :class:`BinGeometry`) for ``D = resolution`` (cached)."""
+    """(:class:`~guiding.guides.directions.SphereBins`, its :class:`BinGeometry`) for ``D = resolution`` (cached)."""
     bins = SphereBins(resolution)
     return bins, bin_geometry(bins.direction, np.arange(bins.count))
 
 
 @functools.lru_cache(maxsize=None)
 def normal_bins_geometry(resolution: int) -> tuple:
-    """(:class:`~guiding.directions.NormalBins`, its :class:`BinGeometry`) for ``R = resolution`` (cached)."""
+    """(:class:`~guiding.guides.directions.NormalBins`, its :class:`BinGeometry`) for ``R = resolution`` (cached)."""
     bins = NormalBins(resolution)
     return bins, bin_geometry(bins.normal, np.arange(bins.count))
 

@@ -12,11 +12,11 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from guiding.directions import NormalBins, SphereBins
+from guiding.guides.directions import NormalBins, SphereBins
 from guiding.guides.alias_rows import SLOT_FIELDS, drawn_probability
-from guiding.guides.grid import GridGuide
-from guiding.guides.grid_record import Q_LIMIT
-from guiding.methods import grid_parameters
+from guiding.guides.grid.guide import GridGuide
+from guiding.guides.grid.record import Q_LIMIT
+from guiding.guides.methods import grid_parameters
 from arrays import EPS32, ONE_MINUS_EPS32, TINY32, to_numpy, vectors
 
 

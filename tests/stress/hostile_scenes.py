@@ -6,11 +6,11 @@ from dataclasses import dataclass
 import mitsuba as mi
 import numpy as np
 
-from guiding.integrator import GuidedPathIntegrator
-from guiding.methods import grid_parameters, make_guide
+from guiding.render.integrator import GuidedPathIntegrator
+from guiding.guides.methods import grid_parameters, make_guide
 from guiding.metrics import nonfinite_pixels
-from guiding.render import Budget, render
-from guiding.validation import Z_LIMIT
+from guiding.render.progressive import Budget, render
+from guiding.experiments.validation import Z_LIMIT
 from arrays import EPS32, TINY32
 from hostile import record_violations
 from sdtree_parts import forest_violations
@@ -73,7 +73,7 @@ def open_plane(with_cube: bool = True, offset: float = 0.0, scale: float = 1.0) 
 @dataclass
 class SceneRun:
     """One progressive render of a stress scene: per-pass images ``(passes, H, W, 3)`` and their means
-    ``(passes, 3)``, the final image, the per-pass statistics (:class:`~guiding.render.PassStats`) and the guide."""
+    ``(passes, 3)``, the final image, the per-pass statistics (:class:`~guiding.render.progressive.PassStats`) and the guide."""
 
     method: str
     pass_images: np.ndarray

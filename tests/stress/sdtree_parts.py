@@ -1,12 +1,12 @@
-"""What the stress tests reach inside the SD-tree guides (:mod:`guiding.guides.sdtree`): its cylindrical direction
+"""What the stress tests reach inside the SD-tree guides (:mod:`guiding.guides.trees.sdtree`): its cylindrical direction
 map, its forests and its accumulators. (Every import from that module is here, in one place.)"""
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from guiding.guides.dtree import DeviceForest, dir_to_uv, uv_to_dir
-from guiding.methods import make_guide
+from guiding.guides.trees.dtree import DeviceForest, dir_to_uv, uv_to_dir
+from guiding.guides.methods import make_guide
 from arrays import EPS32, ONE_MINUS_EPS32, to_numpy, unit, vectors
 from direction_maps import readings, smallest_angle
 from hostile import HOSTILE_ENTRIES, floor_scene
@@ -40,7 +40,7 @@ class CylindricalCells:
         return uv_to_dir(self.uv(k, sample))
 
     def index(self, d) -> np.ndarray:
-        """The position in ``cells`` of the cell of ``d`` (by :func:`~guiding.guides.sdtree.dir_to_uv`), or
+        """The position in ``cells`` of the cell of ``d`` (by :func:`~guiding.guides.trees.sdtree.dir_to_uv`), or
         ``count`` when that cell is not among them."""
         uv = to_numpy(dir_to_uv(d))
         key = np.floor(uv[:, 1] * self.n).astype(np.int64) * self.n + np.floor(uv[:, 0] * self.n).astype(np.int64)

@@ -11,9 +11,9 @@ import drjit as dr
 import numpy as np
 import pytest
 
-from guiding.integrator import GuidedPathIntegrator
-from guiding.methods import make_guide
-from guiding.render import Budget, render
+from guiding.render.integrator import GuidedPathIntegrator
+from guiding.guides.methods import make_guide
+from guiding.render.progressive import Budget, render
 from guiding.scenes import load_scene
 
 #: Methods whose determinism is measured: the baseline (no learning), grid guides (SARSA with rejection sampling, MC

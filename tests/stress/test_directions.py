@@ -1,4 +1,4 @@
-"""Directions: the direction ↔ bin maps (the concentric hemisphere pair of `guiding.directions`, its cube map
+"""Directions: the direction ↔ bin maps (the concentric hemisphere pair of `guiding.guides.directions`, its cube map
 of normals, and the SD-tree's cylindrical map) at poles, seams and the hemisphere boundary, with degenerate and
 unnormalised input, and the solid angle of every bin.
 

@@ -6,8 +6,8 @@ long run, compared with the 1e-4 threshold.
 
 import numpy as np
 
-from guiding.integrator import GuidedPathIntegrator
-from guiding.render import Budget, render
+from guiding.render.integrator import GuidedPathIntegrator
+from guiding.render.progressive import Budget, render
 from guiding.scenes import load_scene
 from arrays import EPS32
 

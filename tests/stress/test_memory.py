@@ -14,10 +14,10 @@ import pytest
 from guiding.errors import GuidingError
 from guiding.guides import PROPOSALS, RULES, SAMPLERS
 from guiding.guides.alias_rows import SLOT_BYTES
-from guiding.guides.grid import GridGuide
-from guiding.guides.grid_record import RadianceRecord, table_needs
-from guiding.guides.grid_refinement import REFINE_VISITS
-from guiding.methods import MEMORY_LIMIT_VARIABLE, check_method, format_size, make_guide, table_bytes
+from guiding.guides.grid.guide import GridGuide
+from guiding.guides.grid.record import RadianceRecord, table_needs
+from guiding.guides.grid.refinement import REFINE_VISITS
+from guiding.guides.methods import MEMORY_LIMIT_VARIABLE, check_method, format_size, make_guide, table_bytes
 from arrays import few
 from command_line import one_error_line, run_cli
 

@@ -12,7 +12,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from guiding.testing import GuideAdapter, chi_square, diffuse_vertex
+from guiding.experiments.testing import GuideAdapter, chi_square, diffuse_vertex
 from arrays import few, unit
 from hostile import FixedSampler, extreme_samples, sample_violations, sampler_normals, spiked_guide
 from sdtree_parts import DEGENERATE_TREES, TREE_METHODS, sample_from, tree_guide

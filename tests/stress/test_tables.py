@@ -10,7 +10,7 @@ S-tree to depth 60. `RadianceRecord.update` (via `_fold_pass_into_q`) now drops 
 import numpy as np
 import pytest
 
-from guiding.guides.grid_record import RadianceRecord
+from guiding.guides.grid.record import RadianceRecord
 from arrays import few
 from hostile import HOSTILE_ENTRIES, hostile_grid, record_arrays, record_violations
 from sdtree_parts import TREE_METHODS, forest_violations, hostile_tree

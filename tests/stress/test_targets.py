@@ -8,7 +8,7 @@ skipped non-finite L/pdf values when splatting.
 import numpy as np
 import pytest
 
-from guiding.directions import SphereBins
+from guiding.guides.directions import SphereBins
 from arrays import few, vectors
 from hostile import SyntheticPaths, floor_scene, grid_guide, record_violations
 from sdtree_parts import TREE_METHODS, forest_violations, tree_guide

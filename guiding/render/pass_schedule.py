@@ -1,4 +1,4 @@
-"""How many samples per pixel the next pass of a progressive render takes (:func:`guiding.render.render`).
+"""How many samples per pixel the next pass of a progressive render takes (:func:`guiding.render.progressive.render`).
 
 Passes start at the budget's ``pass_spp`` and grow, at most to twice the largest pass so far (so that the time of
 a pass is foreseen from one of at least half its size), as far as every limit allows: the guide's next update

@@ -15,11 +15,11 @@ Layout of what a configuration produces, under its ``out`` folder::
 
 Command line (used by the rules, handy by hand)::
 
-    python -m guiding.harness path [--configfile F] EXPERIMENT SCENE METHOD [--seed S] [--budget B]
-    python -m guiding.harness runs [--configfile F]          # every run of the configuration, one path a line
-    python -m guiding.harness evaluate IMAGE STATS REFERENCE --run JSON --out metrics.json
-    python -m guiding.harness provenance --config JSON --out-json F --out-html F STATS...
-    python -m guiding.harness cause LOG --status N             # why a job failed, on stderr (the rules call it)
+    python -m guiding.experiments.harness path [--configfile F] EXPERIMENT SCENE METHOD [--seed S] [--budget B]
+    python -m guiding.experiments.harness runs [--configfile F]          # every run of the configuration, one path a line
+    python -m guiding.experiments.harness evaluate IMAGE STATS REFERENCE --run JSON --out metrics.json
+    python -m guiding.experiments.harness provenance --config JSON --out-json F --out-html F STATS...
+    python -m guiding.experiments.harness cause LOG --status N             # why a job failed, on stderr (the rules call it)
 """
 
 from __future__ import annotations
@@ -34,9 +34,9 @@ import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from .errors import GuidingError
+from guiding.errors import GuidingError
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
 SCHEMA = PROJECT_ROOT / "config" / "schema.yaml"
 DEFAULT_CONFIG = PROJECT_ROOT / "config" / "config.yaml"
 
@@ -204,13 +204,13 @@ class Plan:
         try:
             return self._by_key[key]
         except KeyError:
-            raise ConfigError(f"no run {'/'.join(key)} in this configuration (see `python -m guiding.harness runs`)")\
+            raise ConfigError(f"no run {'/'.join(key)} in this configuration (see `python -m guiding.experiments.harness runs`)")\
                 from None
 
     def scene_file(self, scene: str) -> list[str]:
         """The scene's XML file as a job input (so an edited scene re-renders), or nothing when it is not on the
         search path (the job then fails with the command line's own message)."""
-        from .scenes import find_scene
+        from guiding.scenes import find_scene
 
         try:
             return [str(find_scene(scene, self.config["scene_dirs"]))]
@@ -310,7 +310,7 @@ class Plan:
 
 
     def comparison_job(self, experiment: str) -> dict:
-        """What :func:`guiding.figures.comparison` draws for ``experiment``: per scene, the first seed's renders at
+        """What :func:`guiding.experiments.figures.comparison` draws for ``experiment``: per scene, the first seed's renders at
         the experiment's last budget point, and the reference."""
         runs = self.experiment_runs(experiment)
         seed, tag = runs[0].seed, runs[-1].budget.tag
@@ -419,7 +419,7 @@ def expand(config: dict) -> tuple[list[Run], dict[tuple[str, float], Reference]]
 
 def missing_scenes(config: dict, runs: list[Run]) -> list[str]:
     """Scenes of the runs that are not on the scene search path."""
-    from .scenes import find_scene
+    from guiding.scenes import find_scene
 
     missing = []
     for scene in sorted({r.scene for r in runs}):
@@ -433,7 +433,7 @@ def missing_scenes(config: dict, runs: list[Run]) -> list[str]:
 def check_methods(runs: list[Run]) -> list[str]:
     """Command-line methods this checkout does not know (empty when the method registry cannot be imported)."""
     try:
-        from . import methods as registry
+        from guiding.guides import methods as registry
     except Exception:  # noqa: BLE001 - a registry being edited must not stop a dry run
         return []
     check = getattr(registry, "check_method", None)
@@ -499,8 +499,8 @@ def report_requested(argv: list[str]) -> bool:
 def record_run_config(config: dict, path: str | os.PathLike = LAST_RUN_CONFIG) -> None:
     """Record the resolved ``config`` of a completed run at ``path`` (strict JSON; Snakemake reads it as a
     configfile)."""
-    from . import strict_json
-    from .imageio import write_text_atomic
+    from guiding import strict_json
+    from guiding.imageio import write_text_atomic
 
     write_text_atomic(path, strict_json.dumps(config))
 
@@ -524,7 +524,7 @@ def _load_plan(configfile: str | None) -> Plan:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m guiding.harness", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m guiding.experiments.harness", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
 
     path = commands.add_parser("path", help="the render folder of one run of a configuration")
@@ -561,10 +561,10 @@ def main(argv: list[str] | None = None) -> int:
         text = Path(args.log).read_text(errors="replace") if Path(args.log).is_file() else ""
         print(f"job failed: {job_failure(text, args.status)} (log: {args.log})", file=sys.stderr)
         return 0
-    from . import strict_json
-    from .evaluation import evaluate_run
-    from .imageio import write_text_atomic
-    from .provenance import provenance, provenance_html
+    from guiding import strict_json
+    from guiding.experiments.evaluation import evaluate_run
+    from guiding.imageio import write_text_atomic
+    from guiding.provenance import provenance, provenance_html
 
     try:
         if args.command == "path":

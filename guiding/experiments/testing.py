@@ -28,13 +28,13 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .guides.base import Guide
+from guiding.guides.base import Guide
 
 
 def train(scene: mi.Scene, guide: Guide, spp: int, seed: int = 0, max_depth: int = 16) -> Guide:
     """Train ``guide`` on ``scene`` as a progressive render of ``spp`` samples per pixel would; returns it."""
-    from .integrator import GuidedPathIntegrator
-    from .render import Budget, render
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.render.progressive import Budget, render
 
     props = mi.Properties()
     props["max_depth"] = max_depth
@@ -48,7 +48,7 @@ def scene_vertices(scene: mi.Scene, count: int, seed: int = 0, max_bounces: int 
     Camera rays through uniformly random film positions are followed by BSDF sampling for up to ``max_bounces``
     bounces; every diffuse vertex met is a candidate, and ``count`` of them are drawn at random (so vertices deep in
     the scene, away from the camera's first hits, are included)."""
-    from .guides.grid import guidable
+    from guiding.guides.grid.guide import guidable
 
     lanes = max(4 * count, 1 << 14)
     sensor = scene.sensors()[0]

@@ -9,8 +9,8 @@ import numpy as np
 
 import mitsuba as mi
 
-from .guides import RULES, SAMPLERS
-from .driver import PassDriver, pass_seed
+from guiding.guides import RULES, SAMPLERS
+from guiding.render.driver import PassDriver, pass_seed
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -71,9 +71,9 @@ def unbiasedness_table(scene_name: str, methods: list[str] = UNBIASEDNESS_METHOD
     UNBIASEDNESS_SCENES unless given), with the relative difference, its standard error and the largest z-score."""
     import pandas as pd
 
-    from .integrator import GuidedPathIntegrator
-    from .methods import make_guide
-    from .scenes import load_scene
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.guides.methods import make_guide
+    from guiding.scenes import load_scene
 
     scale, passes, spp = budget or UNBIASEDNESS_SCENES[scene_name]
     scene = load_scene(scene_name, scale)
@@ -95,9 +95,9 @@ def bounce_weight_table(scene_name: str, methods: list[str], scale: float = 0.1,
     mean over albedo (1 when unbiased), second moment over albedo² (1 for cosine sampling) and the largest."""
     import pandas as pd
 
-    from .methods import make_guide
-    from .scenes import load_scene
-    from .testing import scene_vertices, single_bounce_weights, train
+    from guiding.guides.methods import make_guide
+    from guiding.scenes import load_scene
+    from guiding.experiments.testing import scene_vertices, single_bounce_weights, train
 
     scene = load_scene(scene_name, scale)
     points = scene_vertices(scene, vertices, seed=3)
@@ -116,11 +116,11 @@ def _equal_spp_rows(scene_name: str, scale: float, spp: int, reference_spp: int,
                     configurations: list[tuple[dict, str, dict]]) -> list[dict]:
     """One row per (configuration, seed): MAE, relMSE, hit rate and time at equal spp against a `path` reference.
     ``configurations``: (the row's fields, method name, ``make_guide`` overrides)."""
-    from .integrator import GuidedPathIntegrator
-    from .methods import make_guide
-    from .metrics import evaluate
-    from .render import Budget, render
-    from .scenes import load_scene
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.guides.methods import make_guide
+    from guiding.metrics import evaluate
+    from guiding.render.progressive import Budget, render
+    from guiding.scenes import load_scene
 
     scene = load_scene(scene_name, scale)
     reference = render(scene, mi.load_dict({"type": "path", "max_depth": 16}),
@@ -196,7 +196,7 @@ def refinement_table(scenes: dict[str, float] = REFINEMENT_SCENES, spp: int = 51
     ``seeds`` of the MAE, with the time and the refined entries."""
     import pandas as pd
 
-    from .methods import METHODS
+    from guiding.guides.methods import METHODS
 
     default = METHODS["ours-plus"].parameters.sub_resolution
     rows = []

@@ -1,16 +1,16 @@
 """Practical path guiding (Müller, Gross, Novák 2017): the SD-tree, and Kim & Kim's simplified "Quadtree" baseline.
 
-Two guides share the D-tree code (:mod:`guiding.guides.dtree`):
+Two guides share the D-tree code (:mod:`guiding.guides.trees.dtree`):
 
 * :class:`SDTreeGuide` (method ``sdtree``): one D-tree per leaf of a binary spatial tree (S-tree,
-  :mod:`guiding.guides.stree`) over the scene's bounding box (made cubic, as in Müller's code), both refined after
+  :mod:`guiding.guides.trees.stree`) over the scene's bounding box (made cubic, as in Müller's code), both refined after
   each iteration of a doubling schedule from the data of that iteration alone. Its defaults are those of Tom94's
   guided_path.cpp, with the S-tree threshold scaled to the image (:class:`~guiding.guides.parameters.SDTreeParameters`).
 * :class:`QuadtreeGridGuide` (method ``quadtree-grid``): one D-tree per cell of a uniform ``S³`` grid, split-only,
   energies accumulated over the whole render and the trees refreshed after every pass (the "Quadtree" column of
   Kim & Kim 2021).
 
-**Monte Carlo recording** (:mod:`guiding.guides.vertex_log`). In the path loop, :meth:`record` logs every
+**Monte Carlo recording** (:mod:`guiding.guides.grid.vertex_log`). In the path loop, :meth:`record` logs every
 vertex of a path in the local memory of its lane: the emitted radiance ``Le`` (RGB), the weight ``w = f·cos/pdf``
 including Russian roulette (RGB, 0 where the path ends), and, for vertices whose sampled direction was traced and not
 delta-sampled, the leaf slot of that direction in the recording D-tree and its pdf. Once the path is complete, still
@@ -33,14 +33,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .base import Guide, NoPathState, UpdateResult, rgb_mean
-from .bsdf_fraction import LearnedBsdfFraction
-from .dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest, capacity, padded
-from .grid_cells import GridCells
-from .parameters import PAPER_SPP_UNIT, QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
-from .pass_sums import add_target, footprint, pass_sums
-from .stree import STree, iteration_length, stree_locate
-from .vertex_log import NO_RECORD, VertexLog, known_or_found, walk_backward
+from guiding.guides.base import Guide, NoPathState, UpdateResult, rgb_mean
+from guiding.guides.trees.bsdf_fraction import LearnedBsdfFraction
+from guiding.guides.trees.dtree import ONE_MINUS_EPS, SPLIT_COPY, SPLIT_GROW, SPLIT_REFINE, DeviceForest, Forest, capacity, padded
+from guiding.guides.grid_cells import GridCells
+from guiding.guides.parameters import PAPER_SPP_UNIT, QuadtreeGridParameters, SDTreeParameters, TreeParameters, with_overrides
+from guiding.guides.pass_sums import add_target, footprint, pass_sums
+from guiding.guides.trees.stree import STree, iteration_length, stree_locate
+from guiding.guides.grid.vertex_log import NO_RECORD, VertexLog, known_or_found, walk_backward
 
 #: Fewest leaf slots the recorded sums hold (1 MiB of float64 pairs): they are copied per thread
 #: (:func:`~guiding.guides.pass_sums.copied_per_thread`), and the floor keeps the trees' growth from recompiling the
@@ -61,7 +61,7 @@ class TreeVertex:
     slot: mi.UInt32 = None
     point: mi.Point2f = None
     #: ∂ log m/∂α at the direction the mixture drew ((p_bsdf − p_tree)/m; 1/α at a delta lobe's), 0 where the
-    #: mixture was not sampled: what the learned BSDF share needs of the vertex (:mod:`~guiding.guides.bsdf_fraction`;
+    #: mixture was not sampled: what the learned BSDF share needs of the vertex (:mod:`~guiding.guides.trees.bsdf_fraction`;
     #: None unless it is learned).
     score: mi.Float = None
     #: Three uniform numbers that place the vertex's splat in the SD-tree's stochastic spatial filter (None without).
@@ -109,7 +109,7 @@ class _TreeGuide(Guide):
     def built(self, value: bool) -> None:
         self._built = value
         # A device flag, not a literal of the trace: the kernel reads it as a parameter, so the first build neither
-        # recompiles the render nor leaves a frozen pass (guiding.frozen_pass) with the flag of its recording.
+        # recompiles the render nor leaves a frozen pass (guiding.render.frozen_pass) with the flag of its recording.
         self._empty_dtrees_sampled = dr.opaque(mi.Bool, self.uniform_empty_dtrees and value)
 
     # -------------------------------------------------------------------------------------- device side
@@ -336,7 +336,7 @@ class SDTreeGuide(_TreeGuide):
     current iteration. ``update`` reports ``iteration_done`` for the pass that closed an iteration: a renderer that
     keeps only the last iteration (Müller's final image) restarts its accumulation there. Under a seconds budget
     the guide has no end: the renderer asks :meth:`iteration_spp` at each boundary and calls :meth:`stop_training`
-    when the next iteration would not fit (:mod:`guiding.render`).
+    when the next iteration would not fit (:mod:`guiding.render.progressive`).
     """
 
     name = "sdtree"
@@ -432,7 +432,7 @@ class SDTreeGuide(_TreeGuide):
 
     def new_paths(self, size: int, max_depth: int):
         if self.records():
-            # Counted on the device, not here: a frozen pass (guiding.frozen_pass) does not run this method.
+            # Counted on the device, not here: a frozen pass (guiding.render.frozen_pass) does not run this method.
             dr.scatter_reduce(dr.ReduceOp.Add, self._pass_paths, 1, dr.zeros(mi.UInt32, size))
         return super().new_paths(size, max_depth)
 

@@ -8,9 +8,9 @@ Each figure has a function that returns it (``*_figure``, for tests to read its 
 
 Command line (what the Snakefile runs)::
 
-    python -m guiding.figures comparison --job JSON --out F.png
-    python -m guiding.figures convergence --job JSON --out F.png METRICS.json...
-    python -m guiding.figures heatmap --csv table1.csv --out F.png
+    python -m guiding.experiments.figures comparison --job JSON --out F.png
+    python -m guiding.experiments.figures convergence --job JSON --out F.png METRICS.json...
+    python -m guiding.experiments.figures heatmap --csv table1.csv --out F.png
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import GuidingError
-from .imageio import atomic_path, read_exr
-from .metrics import flip_map, mae_tonemapped, tone_map
+from guiding.errors import GuidingError
+from guiding.imageio import atomic_path, read_exr
+from guiding.metrics import flip_map, mae_tonemapped, tone_map
 
 
 def new_figure(width: float, height: float, layout: str = "constrained"):
@@ -315,7 +315,7 @@ def heatmap_figure(cells_csv: str | Path):
     import pandas as pd
     from matplotlib.colors import Normalize
 
-    from .tables import PAPER_TABLE1
+    from guiding.experiments.tables import PAPER_TABLE1
 
     cells = pd.read_csv(cells_csv)
     panels = [(f"ours: {scene}", {(int(r.S), int(r.D)): r.mae for r in group.itertuples()})
@@ -351,7 +351,7 @@ def heatmap(cells_csv: str | Path, out: str | Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m guiding.figures", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m guiding.experiments.figures", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
     comp = commands.add_parser("comparison")
     comp.add_argument("--job", required=True)

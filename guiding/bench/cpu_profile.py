@@ -31,8 +31,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from .bench_child import child_failure, method_driver
-from .errors import GuidingError
+from guiding.bench.child import child_failure, method_driver
+from guiding.errors import GuidingError
 
 WARMUP_PASSES = 3
 PASS_SPP = 8
@@ -120,7 +120,7 @@ def profile_method(method: str, scene: str, scale: float, passes: int, timeout: 
         with open(log, "w") as child_log:
             child = subprocess.Popen(["perf", "record", "-q", "-e", "cpu-clock", "-D", "-1", "-o", str(data),
                                       "--control", f"fd:{control_read},{ack_write}", "--",
-                                      sys.executable, "-m", "guiding.cpu_profile", method, scene, str(scale),
+                                      sys.executable, "-m", "guiding.bench.cpu_profile", method, scene, str(scale),
                                       str(passes), str(regions)], pass_fds=(control_read, ack_write),
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=child_log, text=True)
         os.close(control_read)

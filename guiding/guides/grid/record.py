@@ -35,13 +35,13 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..directions import NormalBins, SphereBins
-from ..errors import GuidingError
-from . import alias_rows
-from .grid_cells import GridCells
-from .grid_refinement import BinRefinement
-from .parameters import MIN_EXPLORATION, draws_bins_by_rejection
-from .pass_sums import add_target, entry_sums, footprint, pass_sums, planned_footprint
+from guiding.guides.directions import NormalBins, SphereBins
+from guiding.errors import GuidingError
+from guiding.guides import alias_rows
+from guiding.guides.grid_cells import GridCells
+from guiding.guides.grid.refinement import BinRefinement
+from guiding.guides.parameters import MIN_EXPLORATION, draws_bins_by_rejection
+from guiding.guides.pass_sums import add_target, entry_sums, footprint, pass_sums, planned_footprint
 
 #: Added to Q before normalising, so that no bin has zero probability (method.md §4).
 Q_OFFSET = 1e-6
@@ -134,7 +134,7 @@ class RadianceRecord:
       needs_value: build V (Expected SARSA).
       min_exploration: floor of ε (0 gives the paper's schedule exactly; see MIN_EXPLORATION).
       sub_resolution: R > 1 refines the entries holding ``refine_share`` of their cell's policy into R × R
-        sub-bins (:class:`~guiding.guides.grid_refinement.BinRefinement`, at most ``refine_capacity`` entries); record
+        sub-bins (:class:`~guiding.guides.grid.refinement.BinRefinement`, at most ``refine_capacity`` entries); record
         indices are then ``entry·R² + sub-bin``. 1: no refinement.
     """
 
@@ -181,7 +181,7 @@ class RadianceRecord:
         self.fine = sub_resolution * sub_resolution
         self.refined_stats: dict[str, int] = {}
         # In memory, not literals: the untrained passes' tables are the same kind of input to a frozen pass as the
-        # trained ones' (guiding.frozen_pass).
+        # trained ones' (guiding.render.frozen_pass).
         pair_tables = ((self.visited, self.pair_memo, self.value, self.hemi_alias, self.normal_centres)
                        if self.needs_pairs else ())
         dr.make_opaque(self.acc_sum, self.acc_count, self.q, self.policy, *pair_tables)

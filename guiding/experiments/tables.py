@@ -1,6 +1,6 @@
 """Result tables laid out like the paper's, as CSV and Markdown, with the published numbers beside ours.
 
-Input: the metrics.json of every run of one experiment (written by ``python -m guiding.harness evaluate``; each
+Input: the metrics.json of every run of one experiment (written by ``python -m guiding.experiments.harness evaluate``; each
 holds the run, its metrics, its stats and its provenance) and the experiment's layout (``Plan.experiment_spec``).
 Output: ``{experiment}.csv`` (one row per cell: the mean over seeds, and the paper's number), ``{experiment}.md``
 (the paper's layout, each cell "ours / paper") and ``{experiment}_runs.csv`` (one row per render, with the machine,
@@ -9,7 +9,7 @@ device and versions it ran on).
 The published numbers (method.md §8) come from other scenes or resolutions, an 8-bit reference and the authors'
 GPU; they are shown for orientation, not as a target to match digit for digit.
 
-Command line: ``python -m guiding.tables --spec JSON --csv F --md F --runs-csv F METRICS.json...``
+Command line: ``python -m guiding.experiments.tables --spec JSON --csv F --md F --runs-csv F METRICS.json...``
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .harness import RULE_LABELS, SAMPLER_LABELS
-from .metrics import METRICS
+from guiding.experiments.harness import RULE_LABELS, SAMPLER_LABELS
+from guiding.metrics import METRICS
 
 # ------------------------------------------------------------------------------- published numbers (MAE)
 
@@ -339,7 +339,7 @@ def build(spec: dict, rows: list[dict]) -> tuple[pd.DataFrame, str, pd.DataFrame
 
 
 def write(spec: dict, metrics_files: list[str], csv: str, md: str, runs_csv: str) -> None:
-    from .imageio import write_text_atomic
+    from guiding.imageio import write_text_atomic
 
     cells, text, runs = build(spec, load_metrics(metrics_files))
     write_text_atomic(csv, cells.to_csv(index=False, float_format="%.6g"))
@@ -348,7 +348,7 @@ def write(spec: dict, metrics_files: list[str], csv: str, md: str, runs_csv: str
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m guiding.tables", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m guiding.experiments.tables", description=__doc__.splitlines()[0])
     parser.add_argument("--spec", required=True, help="the experiment's layout as JSON (Plan.experiment_spec)")
     parser.add_argument("--csv", required=True)
     parser.add_argument("--md", required=True)

@@ -28,8 +28,8 @@ import tempfile
 
 import pandas as pd
 
-from .bench_child import child_failure, method_driver
-from .errors import GuidingError
+from guiding.bench.child import child_failure, method_driver
+from guiding.errors import GuidingError
 
 #: Passes each method renders (1 spp each) while its kernels are compiled: the first may be untrained (grid guides
 #: sample the BSDF until their first update), the later ones use the trained guide.
@@ -58,7 +58,7 @@ def parse_disassembly(log: str) -> list[list[tuple[int, int]]]:
 def count_instructions(method: str, scene: str, scale: float) -> dict:
     """Instructions and functions of ``method``'s largest render kernel on ``scene`` at ``scale`` (CPU backend)."""
     with tempfile.TemporaryDirectory() as cache:
-        run = subprocess.run([sys.executable, "-m", "guiding.kernel_size", method, scene, str(scale)],
+        run = subprocess.run([sys.executable, "-m", "guiding.bench.kernel_size", method, scene, str(scale)],
                              env={**os.environ, "DRJIT_CACHE_DIR": cache}, capture_output=True, text=True)
     if run.returncode != 0:
         raise child_failure(f"kernel-size run of '{method}' on {scene}", run.stderr)

@@ -30,7 +30,7 @@ Target directions below the true surface have f = 0 and weight 0. The target is 
   ``uniform``  the paper's loop: uniform directions on the hemisphere of n_c, accepted if ``ξ·M < P·cos(ω, n_c)``;
                acceptance ``a = N/(2π·M)``, a few percent once P is peaked; ``r = (1 − a)^max_proposals``.
 With ``sub_resolution`` R > 1 (``ours-plus``), a bin drawn by the ``bins`` proposal that the record has refined
-(:mod:`~guiding.guides.grid_refinement`) gives its direction without rejection: a sub-bin from its learned
+(:mod:`~guiding.guides.grid.refinement`) gives its direction without rejection: a sub-bin from its learned
 distribution π, a uniform direction in it, density within the bin ``π_j·R²/A`` (A the bin's solid angle) in place of the in-bin rejection's; such bins add no
 miss share.
 Pass 0 samples the BSDF only (the tables are empty); it marks the (cell, normal bin) pairs it visits, so the
@@ -44,13 +44,13 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .base import Guide, UpdateResult, rgb_mean
-from . import alias_rows
-from .lambertian import LambertianBsdfs, LambertianVertex
-from .grid_record import IN_BIN_PROPOSALS, PairMemo, RadianceRecord, table_needs
-from .parameters import (PROFILE_BSDF_PATHS, PROFILE_HOT_ROWS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
+from guiding.guides.base import Guide, UpdateResult, rgb_mean
+from guiding.guides import alias_rows
+from guiding.guides.grid.lambertian import LambertianBsdfs, LambertianVertex
+from guiding.guides.grid.record import IN_BIN_PROPOSALS, PairMemo, RadianceRecord, table_needs
+from guiding.guides.parameters import (PROFILE_BSDF_PATHS, PROFILE_HOT_ROWS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
                          with_overrides)
-from .vertex_log import NO_RECORD, VertexLog, known_or_found, walk_backward
+from guiding.guides.grid.vertex_log import NO_RECORD, VertexLog, known_or_found, walk_backward
 
 
 @dataclass
@@ -280,7 +280,7 @@ class GridGuide(Guide):
                        lambertian=None) -> tuple[mi.BSDFSample3f, mi.Spectrum, mi.UInt32]:
         """The one-sample mixture of BSDF sampling and the guide at the guided lanes: one BSDF call gives its sample,
         and its value and density at the guide's direction (computed inline where the BSDF is Lambertian,
-        :mod:`~guiding.guides.lambertian`). Returns the sample, its weight and its record index."""
+        :mod:`~guiding.guides.grid.lambertian`). Returns the sample, its weight and its record index."""
         guided = vertex.guided
         table = self.record_table
         if self._stage == 0:      # profile stage "classify": the mask is computed (and used), the BSDF samples

@@ -3,7 +3,7 @@ its previous and its present setup beside BSDF sampling, the quadtree grid and o
 at several image sizes, the pieces of Müller 2019's improved preset (the learned BSDF share, ``sdtree-learned``,
 and the stochastic spatial filter) on the shared scenes, and the SD-tree at several fixed BSDF shares there.
 
-Every render is the progressive renderer's (:func:`guiding.render.render`, first passes of 8 spp, max depth 16), with the
+Every render is the progressive renderer's (:func:`guiding.render.progressive.render`, first passes of 8 spp, max depth 16), with the
 seeds of the experiment harness; the error is the paper's tone-mapped MAE against a reference rendered once by
 Mitsuba's ``path`` integrator and cached in the harness's layout (``references/{scene}/x{scale}-spp{spp}/``).
 """
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .guides.parameters import PAPER_PIXELS, PAPER_SPP_UNIT, SDTreeParameters
+from guiding.guides.parameters import PAPER_PIXELS, PAPER_SPP_UNIT, SDTreeParameters
 
 #: The reference's seed: the harness's default (config/schema.yaml), apart from the render seeds.
 REFERENCE_SEED = 1000003
@@ -32,7 +32,7 @@ class Variant:
 
     Parameters:
       label: what the row shows.
-      method: the method name (:mod:`guiding.methods`).
+      method: the method name (:mod:`guiding.guides.methods`).
       overrides: parameters changed from the method's defaults (``make_guide`` keywords).
       previous_threshold: the S-tree threshold of the previous setup, 12000·sqrt(spp) whatever the image size
         (``c`` is set so that the present rule gives it at the image's size).
@@ -117,9 +117,9 @@ def reference_image(scene_name: str, scale: float, spp: int, cache: Path) -> np.
     into it first (``cache/references/{scene}/x{scale}-spp{spp}/image.exr``, the harness's layout)."""
     import mitsuba as mi
 
-    from .imageio import read_exr, write_exr
-    from .render import Budget, render
-    from .scenes import load_scene
+    from guiding.imageio import read_exr, write_exr
+    from guiding.render.progressive import Budget, render
+    from guiding.scenes import load_scene
 
     path = cache / "references" / scene_name / f"x{scale:g}-spp{spp}" / "image.exr"
     if not path.exists():
@@ -136,9 +136,9 @@ def _render(scene, method: str, overrides: dict, spp: int, seed: int) -> dict:
     """One equal-spp render's figures: its image, the final S-tree's leaves (SD-tree), time and hit rate."""
     import mitsuba as mi
 
-    from .integrator import GuidedPathIntegrator
-    from .methods import make_guide
-    from .render import Budget, render
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.guides.methods import make_guide
+    from guiding.render.progressive import Budget, render
 
     props = mi.Properties()
     props["max_depth"] = MAX_DEPTH
@@ -162,7 +162,7 @@ def _pixels(scene) -> int:
 
 def _runs(scene, reference: np.ndarray, rows: list[tuple[dict, str, dict]], spp: int, seeds: tuple[int, ...]):
     """Render every (row, seed); returns one record per render: the row's fields and the render's figures."""
-    from .metrics import evaluate
+    from guiding.metrics import evaluate
 
     records = []
     for fields, method, overrides in rows:
@@ -204,7 +204,7 @@ def equal_spp_table(scene_name: str = "veach-ajar", scale: float = 0.0625, spp: 
       variants: the rows (default :data:`VARIANTS`; the first is the one the others are compared with).
     Returns (summary, runs) as DataFrames.
     """
-    from .scenes import load_scene
+    from guiding.scenes import load_scene
 
     scene = load_scene(scene_name, scale)
     reference = reference_image(scene_name, scale, reference_spp, cache)
@@ -239,7 +239,7 @@ def threshold_table(scales: tuple[float, ...] = (0.0625, 0.125, 0.25), scene_nam
       constants: the values of ``c`` (default :data:`THRESHOLD_CONSTANTS`).
     Returns (summary, runs) as DataFrames.
     """
-    from .scenes import load_scene
+    from guiding.scenes import load_scene
 
     records = []
     for scale in scales:

@@ -3,19 +3,19 @@ one method in a fresh process on the CPU backend, and a failure comes back to th
 
 from __future__ import annotations
 
-from .errors import GuidingError
+from guiding.errors import GuidingError
 
 
 def method_driver(method: str, scene_name: str, scale: float, threads: int | None = None):
-    """In the child: a prepared :class:`~guiding.driver.PassDriver` of ``method`` on ``scene_name`` at ``scale``,
+    """In the child: a prepared :class:`~guiding.render.driver.PassDriver` of ``method`` on ``scene_name`` at ``scale``,
     on ``llvm_ad_rgb`` (with ``threads`` Dr.Jit threads; None: the default)."""
-    from .backend import set_variant
+    from guiding.backend import set_variant
 
     set_variant("llvm_ad_rgb", threads)
-    from .driver import PassDriver
-    from .integrator import GuidedPathIntegrator
-    from .methods import make_guide
-    from .scenes import load_scene
+    from guiding.render.driver import PassDriver
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.guides.methods import make_guide
+    from guiding.scenes import load_scene
 
     driver = PassDriver(load_scene(scene_name, scale=scale), GuidedPathIntegrator(guide=make_guide(method)))
     driver.prepare()

@@ -28,9 +28,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .dtree import capacity, padded
-from .parameters import LEARNED_SHARE_RANGE
-from .pass_sums import copied_per_thread
+from guiding.guides.trees.dtree import capacity, padded
+from guiding.guides.parameters import LEARNED_SHARE_RANGE
+from guiding.guides.pass_sums import copied_per_thread
 
 MIN_SHARE, MAX_SHARE = LEARNED_SHARE_RANGE
 #: Most a share moves in one step.

@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .dtree import padded
+from guiding.guides.trees.dtree import padded
 
 #: The flag of a leaf in the device layout's first word (the rest of the word is the leaf's D-tree index).
 LEAF = 0x80000000

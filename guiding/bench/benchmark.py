@@ -36,8 +36,8 @@ import mitsuba as mi
 import numpy as np
 import pandas as pd
 
-from .driver import PassDriver, pass_seed
-from .guides.base import NoPathState, UpdateResult
+from guiding.render.driver import PassDriver, pass_seed
+from guiding.guides.base import NoPathState, UpdateResult
 
 
 @dataclass
@@ -170,8 +170,8 @@ class _SamplingOnly:
 def breakdown_variants(method: str, guide) -> list[tuple[str, str, object]]:
     """The breakdown of ``method`` whose own integrator has ``guide``: (stage, integrator name, guide or None for the
     method's own integrator)."""
-    from .guides.parameters import draws_bins_by_rejection
-    from .methods import grid_parameters, make_guide
+    from guiding.guides.parameters import draws_bins_by_rejection
+    from guiding.guides.methods import grid_parameters, make_guide
 
     if method == "brdf":
         return []
@@ -196,9 +196,9 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
     a fraction of the ``trace-only`` kernel's), and what the guide skips: the share of vertices it guides and the
     memoised (cell, normal bin) pairs. With ``breakdown``, the cost breakdown of every guided method (timed in the
     same interleaved run; see the module's docstring): returns (benchmark table, breakdown table)."""
-    from .integrator import GuidedPathIntegrator
-    from .methods import make_guide
-    from .scenes import load_scene
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.guides.methods import make_guide
+    from guiding.scenes import load_scene
 
     rows, breakdown_rows = [], []
     for number, (name, scale) in enumerate(scenes, 1):
@@ -288,8 +288,8 @@ def _guided_per_ray(records: list, nothing_to_guide: bool) -> float | None:
 
 
 #: The pass modes ``bench --part pass-schedule`` compares: (growing passes, frozen passes). ``fixed``: passes of 8 spp,
-#: each traced; ``growing``: :mod:`guiding.pass_schedule`'s sizes, each pass traced; ``frozen``: growing passes
-#: replaying the path loop's recording (:mod:`guiding.frozen_pass`; the default).
+#: each traced; ``growing``: :mod:`guiding.render.pass_schedule`'s sizes, each pass traced; ``frozen``: growing passes
+#: replaying the path loop's recording (:mod:`guiding.render.frozen_pass`; the default).
 PASS_MODES = {"fixed": (False, False), "growing": (True, False), "frozen": (True, True)}
 
 
@@ -300,10 +300,10 @@ def pass_schedule_table(scenes: list[tuple[str, float]], methods: list[str], spp
     mode over the one before, and each mode's cost per spp over ``brdf``'s in the same mode (what decides an
     equal-time comparison). The fixed and the frozen passes' costs split into the kernels' execution, the guide's
     updates and the rest of each pass (tracing the loop in Python, launching, synchronising)."""
-    from .integrator import GuidedPathIntegrator
-    from .methods import make_guide
-    from .render import Budget, render
-    from .scenes import load_scene
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.guides.methods import make_guide
+    from guiding.render.progressive import Budget, render
+    from guiding.scenes import load_scene
 
     rows = []
     for number, (name, scale) in enumerate(scenes, 1):

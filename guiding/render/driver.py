@@ -1,4 +1,4 @@
-"""The pass driver: what every progressive loop (:func:`guiding.render.render`, the benchmark, the statistical
+"""The pass driver: what every progressive loop (:func:`guiding.render.progressive.render`, the benchmark, the statistical
 checks) does for one pass, defined once.
 
 Life cycle: ``PassDriver(scene, integrator)``, ``prepare(spp_budget)`` once, then ``run(seed, spp)`` per pass:
@@ -21,7 +21,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .guides import UpdateResult
+from guiding.guides import UpdateResult
 
 
 @dataclass
@@ -67,10 +67,9 @@ def pass_seed(seed: int, index: int) -> int:
 
 def render_pass(scene: mi.Scene, integrator: mi.SamplingIntegrator, sensor: int | mi.Sensor, seed: int,
                 spp: int) -> mi.TensorXf:
-    """One pass: ``guided_path`` renders it without its own progressive loop, any other integrator by ``mi.render``."""
-    from .integrator import GuidedPathIntegrator
-
-    if isinstance(integrator, GuidedPathIntegrator):
+    """One pass: an integrator with a ``render_pass`` of its own (``guided_path``, whose ``render`` is the progressive
+    loop) renders it that way, any other integrator by ``mi.render``."""
+    if hasattr(integrator, "render_pass"):
         return integrator.render_pass(scene, scene.sensors()[sensor] if isinstance(sensor, int) else sensor, seed,
                                       spp)
     return mi.render(scene, integrator=integrator, spp=spp, seed=seed, sensor=sensor)

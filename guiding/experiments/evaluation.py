@@ -5,10 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from . import strict_json
-from .errors import GuidingError
-from .imageio import write_text_atomic
-from .metrics import METRICS
+from guiding import strict_json
+from guiding.errors import GuidingError
+from guiding.imageio import write_text_atomic
+from guiding.metrics import METRICS
 
 
 def render_seconds_at(per_pass: list[dict], spp: int) -> float:
@@ -35,8 +35,8 @@ def evaluate_run(image: str, stats: str, reference: str, out: str, run: dict | N
     seconds up to that pass, compilation excluded: the figures' time axis), the seconds counted against the
     budget when the renderer recorded them, and the metrics.
     """
-    from . import imageio
-    from .metrics import evaluate
+    from guiding import imageio
+    from guiding.metrics import evaluate
 
     stats_data = json.loads(Path(stats).read_text())
     ref = imageio.read_exr(reference)

@@ -13,12 +13,12 @@ import re
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
-from .errors import GuidingError
-from .guides.parameters import (RULES, SAMPLERS, GridParameters, QuadtreeGridParameters, SDTreeParameters,
+from guiding.errors import GuidingError
+from guiding.guides.parameters import (RULES, SAMPLERS, GridParameters, QuadtreeGridParameters, SDTreeParameters,
                                 with_overrides)
 
 if TYPE_CHECKING:
-    from .guides import Guide
+    from guiding.guides import Guide
 
 
 class UnknownMethod(GuidingError):
@@ -37,7 +37,7 @@ class Method:
     def build(self, name: str, overrides: dict):
         from importlib import import_module
 
-        guide_class = getattr(import_module(self.module, __package__), self.guide_class)
+        guide_class = getattr(import_module(self.module), self.guide_class)
         if self.parameters is None:
             if overrides:
                 raise ValueError(f"method '{name}' takes no parameters, got {', '.join(sorted(overrides))}")
@@ -46,24 +46,24 @@ class Method:
 
 
 def _grid(**parameters) -> Method:
-    return Method(".guides.grid", "GridGuide", GridParameters(**parameters))
+    return Method("guiding.guides.grid.guide", "GridGuide", GridParameters(**parameters))
 
 
 #: The paper's configurations (S = 8, D = 16), the baselines, and every rule × sampler. ``sdtree`` is Tom94's
 #: SD-tree with Müller 2019's inverse-variance combination, ``sdtree-last`` the same with the 2017 paper's final image
 #: (its last iteration alone), ``sdtree-learned`` the same with a BSDF share learned per D-tree (Müller 2019's
-#: improved preset; :mod:`guiding.guides.bsdf_fraction`). ``ours-uniform-proposals`` is ``ours`` with the paper's
+#: improved preset; :mod:`guiding.guides.trees.bsdf_fraction`). ``ours-uniform-proposals`` is ``ours`` with the paper's
 #: rejection loop (the same target, about five times the proposals; see GridGuide).
 #: ``{rule}-hemi_inv-pure`` is the paper's hemi_inv without the BSDF share of ours (heavy-tailed; not in the tables).
 #: ``ours-plus`` (beyond the paper, in progress): ``ours`` guiding every smooth reflecting BSDF, with a BSDF share of
 #: at least ``smooth_bsdf_share`` where the BSDF is not purely diffuse, and its brightest bins refined into 8 × 8
-#: sub-bins (:mod:`guiding.guides.grid_refinement`).
+#: sub-bins (:mod:`guiding.guides.grid.refinement`).
 METHODS: dict[str, Method] = {
-    "brdf": Method(".guides.bsdf", "BSDFGuide"),
-    "sdtree": Method(".guides.sdtree", "SDTreeGuide", SDTreeParameters()),
-    "sdtree-last": Method(".guides.sdtree", "SDTreeGuide", SDTreeParameters(combine="last")),
-    "sdtree-learned": Method(".guides.sdtree", "SDTreeGuide", SDTreeParameters(learn_bsdf_fraction=True)),
-    "quadtree-grid": Method(".guides.sdtree", "QuadtreeGridGuide", QuadtreeGridParameters()),
+    "brdf": Method("guiding.guides.bsdf", "BSDFGuide"),
+    "sdtree": Method("guiding.guides.trees.sdtree", "SDTreeGuide", SDTreeParameters()),
+    "sdtree-last": Method("guiding.guides.trees.sdtree", "SDTreeGuide", SDTreeParameters(combine="last")),
+    "sdtree-learned": Method("guiding.guides.trees.sdtree", "SDTreeGuide", SDTreeParameters(learn_bsdf_fraction=True)),
+    "quadtree-grid": Method("guiding.guides.trees.sdtree", "QuadtreeGridGuide", QuadtreeGridParameters()),
     "ours": _grid(rule="sarsa", sampler="hemi_rej_plus"),
     "ours-uniform-proposals": _grid(rule="sarsa", sampler="hemi_rej_plus", proposal="uniform"),
     "ours-no-rejopt": _grid(rule="sarsa", sampler="hemi_rej"),
@@ -143,7 +143,7 @@ def table_bytes(name: str) -> int | None:
     parameters = grid_parameters(name)
     if parameters is None:
         return None
-    from .guides.grid_record import RadianceRecord, table_needs
+    from guiding.guides.grid.record import RadianceRecord, table_needs
 
     needs = table_needs(parameters.rule, parameters.sampler, parameters.proposal)
     return RadianceRecord.planned_bytes(parameters.spatial_resolution, parameters.directional_resolution,

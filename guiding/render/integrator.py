@@ -7,7 +7,7 @@ continuation probability ``q = max(max_rgb(β), rr_min)``.
 
 Usable from XML (``<integrator type="guided_path"><string name="method" value="ours"/></integrator>``), from
 ``mi.load_dict({'type': 'guided_path', ...})``, or built in Python with an explicit guide object. ``mi.render``
-trains the guide: it runs the progressive passes of :func:`guiding.render.render` (``pass_spp`` and growing, the
+trains the guide: it runs the progressive passes of :func:`guiding.render.progressive.render` (``pass_spp`` and growing, the
 guide updated in between) and returns their image.
 """
 
@@ -16,8 +16,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .frozen_pass import FrozenPasses, recordable
-from .guides import Guide
+from guiding.guides import Guide
+from guiding.guides.methods import make_guide
+from guiding.render.frozen_pass import FrozenPasses, recordable
+from guiding.render.progressive import Budget, render
 
 
 class GuidedPathIntegrator(mi.SamplingIntegrator):
@@ -28,20 +30,20 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         emitters (Mitsuba's convention, so images compare with its ``path`` integrator).
       ``rr_depth`` (int, 8): depth from which Russian roulette may end a path.
       ``rr_min`` (float, 0.05): lower bound of the continuation probability ``q = max(max_rgb(β), rr_min)``.
-      ``method`` (str, "brdf"): a method name of :mod:`guiding.methods`; ignored when a guide is passed.
+      ``method`` (str, "brdf"): a method name of :mod:`guiding.guides.methods`; ignored when a guide is passed.
       ``pass_spp`` (int, 8): samples per pixel of the first passes of ``mi.render``; the guide updates between
-        passes, and later passes grow to ``pass_spp·2^k`` up to its next update (:mod:`guiding.pass_schedule`).
+        passes, and later passes grow to ``pass_spp·2^k`` up to its next update (:mod:`guiding.render.pass_schedule`).
       ``growing_passes`` (bool, true): false keeps every pass at ``pass_spp``.
       ``seconds`` (float, 0): when positive, ``mi.render`` renders for this many seconds instead of ``spp``.
       ``freeze`` (bool, true): passes after the first of each configuration replay the path loop's recorded
-        kernels instead of tracing it again (:mod:`guiding.frozen_pass`); false traces every pass.
+        kernels instead of tracing it again (:mod:`guiding.render.frozen_pass`); false traces every pass.
       ``statistics`` (bool, false): grid methods only: the guide counts guided vertices, proposals and acceptances
         per pass (``guided_samples``, ``acceptance_rate``, … in the pass statistics; off by default, they cost
         atomics on every bounce).
 
     Attributes read by the progressive renderer and the benchmark after each pass: ``path_count``,
     ``hit_count`` (paths with a non-zero contribution) and ``ray_count`` (rays traced), reset by
-    :meth:`reset_counters`. After ``mi.render``, ``last_result`` holds the :class:`~guiding.render.RenderResult`
+    :meth:`reset_counters`. After ``mi.render``, ``last_result`` holds the :class:`~guiding.render.progressive.RenderResult`
     (per-pass statistics, iterations, when training stopped).
     """
 
@@ -59,8 +61,6 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         if self.pass_spp < 1:
             raise ValueError(f"pass_spp must be >= 1, got {self.pass_spp}")
         if guide is None:
-            from .methods import make_guide
-
             statistics = props.get("statistics", False)
             guide = make_guide(props.get("method", "brdf"), **({"statistics": True} if statistics else {}))
         self.guide = guide
@@ -75,8 +75,6 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         """What ``mi.render`` calls: progressive passes with the guide's updates in between; the final RGB image.
 
         ``spp`` 0 takes the sensor's sample count; a positive ``seconds`` parameter replaces it by a time budget."""
-        from .render import Budget, render
-
         if not develop:
             raise ValueError("guided_path renders progressive passes and returns their image: develop=False is "
                              "not supported")

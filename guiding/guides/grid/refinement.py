@@ -30,8 +30,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import alias_rows
-from .pass_sums import add_target, entry_sums, footprint, pass_sums, planned_footprint
+from guiding.guides import alias_rows
+from guiding.guides.pass_sums import add_target, entry_sums, footprint, pass_sums, planned_footprint
 
 #: Slot of an entry that is not refined.
 UNREFINED = 0xFFFFFFFF
@@ -54,7 +54,7 @@ class BinRefinement:
     """Sub-bins of the record entries that hold a large share of their cell's policy.
 
     Parameters:
-      bins: the record's :class:`~guiding.directions.SphereBins`.
+      bins: the record's :class:`~guiding.guides.directions.SphereBins`.
       entries: the record's (cell, bin) entries, ``S³·2·D²``.
       resolution: R, sub-bins per side of a refined bin (R² per bin).
       share: least policy share of an entry that is refined.
@@ -86,7 +86,7 @@ class BinRefinement:
         self.probability = dr.full(mi.Float, 1 / self.sub, size)
         self.alias = alias_rows.build(self.probability, self.sub, self._density_scale())
         # In memory, not literals: a frozen pass takes them as the same kind of input before and after the first
-        # refinement (guiding.frozen_pass).
+        # refinement (guiding.render.frozen_pass).
         dr.make_opaque(self.slot, self.sampling_mask, self.learning_mask, self.entry_of, self.acc_sum,
                        self.acc_count, self.probability)
 

@@ -3,8 +3,8 @@
 
 Two kinds of guide are understood:
 
-* ``grid`` (the grid methods, :class:`~guiding.guides.grid.GridGuide`): per cell of a uniform ``S³`` grid, the
-  policy P over the ``2·D²`` equal-area bins of :class:`~guiding.directions.SphereBins` (each of solid angle
+* ``grid`` (the grid methods, :class:`~guiding.guides.grid.guide.GridGuide`): per cell of a uniform ``S³`` grid, the
+  policy P over the ``2·D²`` equal-area bins of :class:`~guiding.guides.directions.SphereBins` (each of solid angle
   ``4π/B``, so the density is ``P·B/(4π)`` per steradian);
 * ``dtrees`` (``sdtree``: one D-tree per leaf of its spatial S-tree; ``quadtree-grid``: one per cell of a uniform
   grid): every leaf of every sampling D-tree over the cylindrical square ``(u, v)``, ``u = (cos θ + 1)/2`` and
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import GuidingError
+from guiding.errors import GuidingError
 
 #: The file a render's saved guide state goes to.
 STATE_FILE = "guide.npz"
@@ -48,7 +48,7 @@ def _cells_state(cells) -> dict:
 
 
 def _grid_state(record) -> dict:
-    """The state of a grid guide's radiance record (:class:`~guiding.guides.grid_record.RadianceRecord`)."""
+    """The state of a grid guide's radiance record (:class:`~guiding.guides.grid.record.RadianceRecord`)."""
     bins = record.bins.count
     return {"kind": "grid", **_cells_state(record.grid), "D": record.bins.resolution,
             "policy": np.asarray(record.policy.numpy(), np.float32).reshape(record.cells, bins),
@@ -161,7 +161,7 @@ def square_directions(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 def _grid_density(state: dict, cell: int, directions: np.ndarray) -> np.ndarray:
     import mitsuba as mi
 
-    from .directions import SphereBins
+    from guiding.guides.directions import SphereBins
 
     bins = SphereBins(int(state["D"]))
     flat = directions.reshape(-1, 3)
@@ -209,7 +209,7 @@ def first_vertex(stats: dict, x: int, y: int) -> tuple[np.ndarray, dict[str, np.
     the render ``stats`` (its stats.json: scene file and scale), by one ray cast; the normal faces the camera."""
     import mitsuba as mi
 
-    from .scenes import load_scene
+    from guiding.scenes import load_scene
 
     scene = load_scene(stats["scene_file"], stats["scale"])
     sensor = scene.sensors()[0]
@@ -237,7 +237,7 @@ def draw(state: dict, cell: int, out: str | Path, title: str, marks: dict[str, n
     ``marks`` (name → world direction) as labelled points."""
     from matplotlib.colors import LogNorm
 
-    from .figures import new_figure, save_figure
+    from guiding.experiments.figures import new_figure, save_figure
 
     image = density_image(state, cell)
     peak = float(image.max())

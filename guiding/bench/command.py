@@ -3,9 +3,9 @@ fixed against growing passes, kernel sizes, CPU profile)."""
 
 from __future__ import annotations
 
-from .errors import GuidingError
-from .output_dirs import prepare_output_dir
-from .provenance import device_name
+from guiding.errors import GuidingError
+from guiding.output_dirs import prepare_output_dir
+from guiding.provenance import device_name
 
 #: What ``bench`` times by default: the shared scenes (method.md) and every kind of method.
 BENCH_SCENES = ("cornell-box", "veach-ajar", "staircase2", "living-room")
@@ -42,8 +42,8 @@ def parse_scene_list(text: str) -> list[tuple[str, float]]:
 
 
 def command_bench(args) -> None:
-    from .backend import set_variant
-    from .scenes import find_scene
+    from guiding.backend import set_variant
+    from guiding.scenes import find_scene
 
     schedule, size, profile = args.part == "pass-schedule", args.part == "kernel-size", args.part == "profile"
     gathers = args.part == "gathers"
@@ -54,7 +54,7 @@ def command_bench(args) -> None:
     scenes = parse_scene_list(args.scenes)
     for name, _ in scenes:
         find_scene(name)
-    from .methods import check_method
+    from guiding.guides.methods import check_method
 
     for method in filter(None, args.methods.split(",")):
         check_method(method)
@@ -64,12 +64,12 @@ def command_bench(args) -> None:
     backend_options = ((f" --variant {args.variant}" if args.variant != "auto" else "")
                        + (f" --threads {args.threads}" if args.threads else ""))
     out = prepare_output_dir(args.out)
-    from .bench import benchmark, pass_schedule_table, target_table, write_table
+    from guiding.bench.benchmark import benchmark, pass_schedule_table, target_table, write_table
 
     device = device_name(variant)
     tag = "gpu" if variant.startswith("cuda") else "cpu"
     if size:
-        from .kernel_size import kernel_table
+        from guiding.bench.kernel_size import kernel_table
 
         frame = kernel_table(scenes, [m for m in args.methods.split(",") if m])
         write_table(frame, out / "kernel_instructions", "Machine instructions of each method's render kernel (the "
@@ -78,7 +78,7 @@ def command_bench(args) -> None:
         print(frame.to_string(index=False))
         return
     if profile:
-        from .cpu_profile import PASS_SPP, WARMUP_PASSES, profile_table
+        from guiding.bench.cpu_profile import PASS_SPP, WARMUP_PASSES, profile_table
 
         frame = profile_table(scenes, [m for m in args.methods.split(",") if m], args.passes)
         write_table(frame, out / "profile_cpu", f"CPU time per spp by code, sampled by Linux perf ({args.passes} "
@@ -91,8 +91,8 @@ def command_bench(args) -> None:
         print(frame.to_string(index=False))
         return
     if gathers:
-        from .backend import gathers_choosable
-        from .gather_bench import gathers_table
+        from guiding.backend import gathers_choosable
+        from guiding.bench.gathers import gathers_table
 
         if not variant.startswith("llvm") or not gathers_choosable():
             raise GuidingError("bench --part gathers compares two CPU builds, which only a CPU with AVX2 and without "

@@ -1,5 +1,5 @@
 """The progressive renderer: passes, each with its own seed, until an spp or a time budget is spent. Passes start at
-``pass_spp`` spp and grow where the guide allows (:mod:`guiding.pass_schedule`).
+``pass_spp`` spp and grow where the guide allows (:mod:`guiding.render.pass_schedule`).
 
 **Iterations.** Passes accumulate (in float64) into the image of the current *iteration*. A guide without a schedule
 (the grid guide, BSDF sampling) has a single iteration, so the image is the mean over all passes, training passes
@@ -40,7 +40,7 @@ seconds) is in :attr:`RenderResult.training_stopped`, also when the guide's own 
 **Snapshots.** ``snapshot`` is called with the image the render would return if it stopped now, after every pass
 that completes ``pass_spp · 2^k`` spp and after the last pass (:class:`SnapshotWriter` writes them to EXR files).
 
-Each pass goes through :class:`guiding.driver.PassDriver`: the device is synchronised, the pass is timed, and the
+Each pass goes through :class:`guiding.render.driver.PassDriver`: the device is synchronised, the pass is timed, and the
 guide updates its distributions.
 Pass-varying values (the seed, the pass's size) reach the kernel as parameters, so the same compiled kernel serves
 every pass of ``pass_spp·2^k`` spp (a last pass of another size, the rest of an spp budget, compiles one more);
@@ -69,10 +69,10 @@ import mitsuba as mi
 import numpy as np
 from tqdm import tqdm
 
-from .driver import PassDriver, pass_seed
-from .errors import GuidingError
-from .guides.parameters import COMBINE_AUTOMATIC, COMBINE_INVERSE_VARIANCE, COMBINE_LAST, COMBINE_MODES
-from .pass_schedule import MIN_ITERATION_PASSES, PassSchedule
+from guiding.render.driver import PassDriver, pass_seed
+from guiding.errors import GuidingError
+from guiding.guides.parameters import COMBINE_AUTOMATIC, COMBINE_INVERSE_VARIANCE, COMBINE_LAST, COMBINE_MODES
+from guiding.render.pass_schedule import MIN_ITERATION_PASSES, PassSchedule
 
 #: Iterations an inverse-variance combination weighs: the last four, as in Müller's implementation.
 COMBINED_ITERATIONS = 4
@@ -87,7 +87,7 @@ class Budget:
 
     ``pass_spp``: samples per pixel of the first passes, and the unit of every pass. ``exclude_passes``: leading
     passes not counted against a seconds budget (they keep ``pass_spp``). ``growing_passes``: later passes may
-    double up to the guide's next update (:mod:`guiding.pass_schedule`); False: every pass has ``pass_spp``.
+    double up to the guide's next update (:mod:`guiding.render.pass_schedule`); False: every pass has ``pass_spp``.
     """
 
     spp: int | None = None
@@ -300,7 +300,7 @@ class SnapshotWriter:
         self.entries: list[dict] = []
 
     def __call__(self, spp: int, image: np.ndarray, seconds: float, spp_in_image: int) -> None:
-        from .imageio import write_exr
+        from guiding.imageio import write_exr
 
         name = f"image_snap{spp:05d}.exr"
         # Listed before it is written: a Ctrl-C that lands between the file's rename and its listing (Mitsuba
@@ -368,7 +368,7 @@ def _iteration_record(index: int, passes: list[PassStats]) -> IterationStats:
 
 
 def _guide_limits(guide, spp_total: int) -> tuple[int | None, int | None]:
-    """What the guide allows the next pass (:class:`~guiding.pass_schedule.PassSchedule`): the spp up to its next
+    """What the guide allows the next pass (:class:`~guiding.render.pass_schedule.PassSchedule`): the spp up to its next
     update, and a share of its current training iteration (each iteration keeps several passes for its variance)."""
     if guide is None:
         return None, None

@@ -15,8 +15,8 @@ import mitsuba as mi
 import numpy as np
 import pandas as pd
 
-from .backend import llvm_target_kept, use_hardware_gathers
-from .bench import _resolution, interleaved_passes
+from guiding.backend import llvm_target_kept, use_hardware_gathers
+from guiding.bench.benchmark import _resolution, interleaved_passes
 
 #: Suffix of the integrator names of the builds with scalar loads.
 SCALAR_LOADS = " [scalar loads]"
@@ -26,9 +26,9 @@ def gathers_table(scenes: list[tuple[str, float]], methods: list[str], passes: i
                   max_depth: int = 16) -> pd.DataFrame:
     """Per scene and method (``path`` and ``brdf`` first): median kernel time per spp of both builds, the speed-up
     of the gather instruction (scalar-load time over gather time), and the ratio to ``brdf`` in each build."""
-    from .integrator import GuidedPathIntegrator
-    from .methods import make_guide
-    from .scenes import load_scene
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.guides.methods import make_guide
+    from guiding.scenes import load_scene
 
     props = mi.Properties()
     props["max_depth"] = max_depth

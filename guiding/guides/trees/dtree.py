@@ -28,9 +28,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..directions import safe_normalize
-from . import alias_rows
-from .alias_rows import ONE_MINUS_EPS     # samples and coordinates are clamped to [0, ONE_MINUS_EPS]
+from guiding.guides.directions import safe_normalize
+from guiding.guides import alias_rows
+from guiding.guides.alias_rows import ONE_MINUS_EPS     # samples and coordinates are clamped to [0, ONE_MINUS_EPS]
 
 #: How far inside a leaf's edges a drawn point stays (at most a quarter of the leaf's side): four float32 steps of
 #: [0.5, 1). Points within it of an edge are pressed onto it, so inside the smallest leaves (side 2^-20, 16 floats)
