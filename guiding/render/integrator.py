@@ -18,6 +18,7 @@ import mitsuba as mi
 
 from guiding.guides import Guide
 from guiding.guides.methods import make_guide
+from guiding.render import defaults
 from guiding.render.frozen_pass import FrozenPasses, recordable
 from guiding.render.progressive import Budget, render
 
@@ -50,10 +51,10 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     def __init__(self, props: mi.Properties = None, guide: Guide | None = None):
         props = props if props is not None else mi.Properties()
         super().__init__(props)
-        self.max_depth = props.get("max_depth", 16)
-        self.rr_depth = props.get("rr_depth", 8)
-        self.rr_min = props.get("rr_min", 0.05)
-        self.pass_spp = props.get("pass_spp", 8)
+        self.max_depth = props.get("max_depth", defaults.MAX_DEPTH)
+        self.rr_depth = props.get("rr_depth", defaults.RR_DEPTH)
+        self.rr_min = props.get("rr_min", defaults.RR_MIN)
+        self.pass_spp = props.get("pass_spp", defaults.PASS_SPP)
         self.seconds = props.get("seconds", 0.0)
         self.growing_passes = props.get("growing_passes", True)
         if self.max_depth < 1:

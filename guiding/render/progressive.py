@@ -69,6 +69,7 @@ import mitsuba as mi
 import numpy as np
 from tqdm import tqdm
 
+from guiding.render import defaults
 from guiding.render.driver import PassDriver, pass_seed
 from guiding.errors import GuidingError
 from guiding.guides.parameters import COMBINE_AUTOMATIC, COMBINE_INVERSE_VARIANCE, COMBINE_LAST, COMBINE_MODES
@@ -92,7 +93,7 @@ class Budget:
 
     spp: int | None = None
     seconds: float | None = None
-    pass_spp: int = 8
+    pass_spp: int = defaults.PASS_SPP
     exclude_passes: int = 0
     growing_passes: bool = True
 
