@@ -119,9 +119,9 @@ def device_name(variant: str, reads: bool = True) -> str:
     # the cost of the guided bounce relative to brdf's: a CPU model name alone hides it (AMD EPYC: Zen 3 or Zen 4).
     vectors = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else None
     # So are table reads: LLVM compiles them into gather instructions or into a scalar load per lane (on AVX2 CPUs
-    # without AVX-512, guiding.backend.use_hardware_gathers decides; None: LLVM decides from the CPU's name).
-    from guiding.backend import gathers_in_use
+    # without AVX-512, guiding.llvm_gathers.use_hardware_gathers decides; None: LLVM decides from the CPU's name).
+    from guiding.llvm_gathers import LLVM_DECIDES, gathers_in_use
 
-    table_reads = {True: "gather instructions", False: "scalar loads", None: None}[gathers_in_use()] if reads else None
+    table_reads = {True: "gather instructions", False: "scalar loads", None: LLVM_DECIDES}[gathers_in_use()] if reads else None
     details = ", ".join(filter(None, [vectors, table_reads, f"{os.cpu_count()} threads"]))
     return f"CPU: {fields.get('model name', platform.processor() or platform.machine())} ({details})"

@@ -280,17 +280,17 @@ def test_a_missed_target_names_the_part_of_the_bounce_its_time_goes_to():
 def test_gathers_part_times_both_builds_of_every_method(monkeypatch):
     """``bench --part gathers``: each method (after ``path`` and ``brdf``) in both builds, the build chosen before
     each of its passes, and the target as it was restored afterwards."""
-    from guiding import backend
+    from guiding import llvm_gathers
     from guiding.bench import gathers as gather_bench
 
-    before = backend.gathers_in_use()
+    before = llvm_gathers.gathers_in_use()
     choices = []
     monkeypatch.setattr(gather_bench, "use_hardware_gathers",
-                        lambda enable=None: choices.append(enable) or backend.use_hardware_gathers(enable))
+                        lambda enable=None: choices.append(enable) or llvm_gathers.use_hardware_gathers(enable))
     frame = gather_bench.gathers_table([("cornell", 0.0625)], ["ours"], passes=1, pass_spp=1)
     # Three passes (two warm-up) of six builds, alternating; the target as it was afterwards.
     assert choices == [True, False] * 9
     assert list(frame["method"]) == ["path", "brdf", "ours"]
     assert (frame[["gather_ms_per_spp", "scalar_loads_ms_per_spp", "speed_up"]] > 0).all().all()
     assert frame.loc[frame["method"] == "brdf", "ratio_to_brdf_gathers"].item() == 1.0
-    assert backend.gathers_in_use() == before
+    assert llvm_gathers.gathers_in_use() == before

@@ -91,7 +91,7 @@ def command_bench(args) -> None:
         print(frame.to_string(index=False))
         return
     if gathers:
-        from guiding.backend import gathers_choosable
+        from guiding.llvm_gathers import gathers_choosable
         from guiding.bench.gathers import gathers_table
 
         if not variant.startswith("llvm") or not gathers_choosable():

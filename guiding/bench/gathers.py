@@ -1,5 +1,5 @@
 """``bench --part gathers``: each method's kernel time per spp with its table reads compiled into the CPU's gather
-instruction and into LLVM's loop of one scalar load per lane (:func:`guiding.backend.use_hardware_gathers`).
+instruction and into LLVM's loop of one scalar load per lane (:func:`guiding.llvm_gathers.use_hardware_gathers`).
 
 The two builds of every method (and of Mitsuba's ``path``) render the same passes from the same seeds, interleaved
 pass by pass in one process, so that machine noise hits them alike; each build learns its own guide, and the two
@@ -15,7 +15,7 @@ import mitsuba as mi
 import numpy as np
 import pandas as pd
 
-from guiding.backend import llvm_target_kept, use_hardware_gathers
+from guiding.llvm_gathers import llvm_target_kept, use_hardware_gathers
 from guiding.bench.benchmark import _resolution, interleaved_passes
 
 #: Suffix of the integrator names of the builds with scalar loads.

@@ -6,7 +6,7 @@ every packet of lanes (8 with AVX2, 16 with AVX-512), and the parts a lane does 
 instruction slow (AVX2 without AVX-512 and without fast-gather tuning: AMD Zen 3, say), it turns each gather into a
 loop over the lanes (a branch and a scalar load per lane), so a table read costs tens of instructions; elsewhere
 (AVX-512, Intel since Skylake) it emits ``vpgatherdd``, counted in ``hardware_gathers``. On Zen 3 the package asks
-for the instruction (:func:`guiding.backend.use_hardware_gathers`), so counts made there before it are not
+for the instruction (:func:`guiding.llvm_gathers.use_hardware_gathers`), so counts made there before it are not
 comparable with later ones. The instruction count of a method's kernel against ``brdf``'s is a noise-free account of
 the code the guided bounce adds, which its time follows in part (results/bench/README.md, "Arithmetic is not
 free"); the table reads among them and where the paths go count too (``bench``'s ``[hot rows]`` stage,
