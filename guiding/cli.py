@@ -215,7 +215,8 @@ def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget
     from guiding.experiments import guide_state
     from guiding import imageio
     from guiding import strict_json
-    from guiding.render.progressive import SnapshotWriter, render, resolve_combine
+    from guiding.render.progress import SnapshotWriter
+    from guiding.render.progressive import render, resolve_combine
     from guiding.scenes import find_scene, load_scene
 
     scene = load_scene(scene_name, args.scale, args.scene_dir)

@@ -10,8 +10,8 @@ from guiding.errors import GuidingError
 from guiding.imageio import read_exr
 from guiding.render.integrator import GuidedPathIntegrator
 from guiding.render.driver import pass_seed
-from guiding.render.progressive import (Budget, combine_iterations, extrapolated_variance, is_snapshot_spp,
-                            iteration_variance, render)
+from guiding.render.iterations import combine_iterations, extrapolated_variance, iteration_variance
+from guiding.render.progressive import Budget, is_snapshot_spp, render
 
 
 def test_spp_budget_is_exact(cornell):
@@ -189,15 +189,15 @@ def test_inverse_variance_combination_weights():
 def test_progress_lines_off_a_terminal_and_a_bar_with_eta_on_request(cornell, capsys, monkeypatch):
     """Not on a terminal (a Snakemake log) the default is plain lines with an ETA, at most one per
     PROGRESS_LINE_SECONDS and one at the end; progress=True is tqdm's bar; False shows nothing."""
-    import guiding.render.progressive as render_module
+    import guiding.render.progress as progress_module
 
     integrator = GuidedPathIntegrator()
-    monkeypatch.setattr(render_module, "PROGRESS_LINE_SECONDS", 1e9)   # a slow machine must not add lines
+    monkeypatch.setattr(progress_module, "PROGRESS_LINE_SECONDS", 1e9)   # a slow machine must not add lines
     render(cornell, integrator, Budget(spp=24, pass_spp=8))          # stderr is pytest's capture: no terminal
     lines = capsys.readouterr().err.splitlines()   # the first pass, then (none due in between) the last
     assert [line.split(",")[0] for line in lines] == ["render: 8/24 spp (33%)", "render: 24/24 spp (100%)"]
     assert all("elapsed, ETA" in line for line in lines)
-    monkeypatch.setattr(render_module, "PROGRESS_LINE_SECONDS", 0.0)
+    monkeypatch.setattr(progress_module, "PROGRESS_LINE_SECONDS", 0.0)
     render(cornell, integrator, Budget(seconds=0.3, pass_spp=8))
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) >= 3 and all(" s counted (" in line and "ETA" in line and " spp" in line for line in lines)

@@ -860,11 +860,12 @@ def test_automatic_budget_stops_training_once_the_extrapolated_variance_rises(co
     after AUTOMATIC_MIN_SPP (lowered to 0 here). Iterations of 8, 16, 32 spp: the first has one pass, no
     estimate; the second sets E ∝ 1/248 (1/0.248 s); the third's 1/232 is larger: stop at 56 spp, and the rest
     of the budget goes into the third iteration's image."""
+    import guiding.render.iterations as iterations_module
     import guiding.render.progressive as render_module
     from guiding.render.progressive import Budget, render
 
     monkeypatch.setattr(render_module, "AUTOMATIC_MIN_SPP", 0)
-    monkeypatch.setattr(render_module, "iteration_variance", _constant_sample_variance)
+    monkeypatch.setattr(iterations_module, "iteration_variance", _constant_sample_variance)
     if kind == "spp":
         budget = Budget(spp=256, pass_spp=8)
     else:
@@ -886,10 +887,10 @@ def test_automatic_budget_stops_training_once_the_extrapolated_variance_rises(co
 def test_automatic_budget_waits_for_a_reliable_variance(cornell, monkeypatch):
     """Tom94's guard: iterations that started before AUTOMATIC_MIN_SPP (256) spp never stop training, however
     their variance goes; the guide's own schedule ends it."""
-    import guiding.render.progressive as render_module
+    import guiding.render.iterations as iterations_module
     from guiding.render.progressive import Budget, render
 
-    monkeypatch.setattr(render_module, "iteration_variance", _constant_sample_variance)
+    monkeypatch.setattr(iterations_module, "iteration_variance", _constant_sample_variance)
     result = render(cornell, GuidedPathIntegrator(guide=SDTreeGuide(base_spp=8)), Budget(spp=256, pass_spp=8),
                     seed=1, combine="automatic")
     assert result.training_stopped["reason"] == "the guide's schedule: its final iteration records nothing"
@@ -900,7 +901,8 @@ def test_automatic_budget_decisions_match_the_measured_variances(cornell, monkey
     """Real variances: every iteration boundary's decision, recomputed from the iterations' records (E_k =
     V_k·S_k / spp left at its start, against E_{k-1})."""
     import guiding.render.progressive as render_module
-    from guiding.render.progressive import Budget, extrapolated_variance, render
+    from guiding.render.iterations import extrapolated_variance
+    from guiding.render.progressive import Budget, render
 
     monkeypatch.setattr(render_module, "AUTOMATIC_MIN_SPP", 0)
     budget = Budget(spp=504, pass_spp=8)

@@ -10,10 +10,10 @@ then (``combine``; by default the guide's own, :attr:`~guiding.guides.base.Guide
 
 * ``"last"``: the last iteration alone (Müller et al. 2017),
 * ``"automatic"``: the last iteration alone, with training stopped by the variance (below), or
-* ``"inverse-variance"``: the mean of the last :data:`COMBINED_ITERATIONS` iterations weighted by the inverse of
+* ``"inverse-variance"``: the mean of the last :data:`~guiding.render.iterations.COMBINED_ITERATIONS` iterations weighted by the inverse of
   each one's estimated variance (Müller 2019, "Practical Path Guiding in Production"; the same number of
   iterations as his implementation). An iteration's variance is estimated from the spread of its pass images
-  (:func:`iteration_variance`; Müller's implementation accumulates squared samples, which ``mi.render`` does not
+  (:func:`~guiding.render.iterations.iteration_variance`; Müller's implementation accumulates squared samples, which ``mi.render`` does not
   return), so an iteration of a single pass has no estimate and no weight. The weights come from the same samples
   as the images, so the combination is consistent rather than strictly unbiased; the tests bound the effect
   against Mitsuba's ``path`` integrator.
@@ -23,7 +23,7 @@ Every iteration's spp, time, hit rate, variance, weight and the guide's statisti
 
 **Automatic budget** (``combine="automatic"``, Tom94's default ``sampleCombination``). After iteration ``k``, its
 variance is extrapolated to the end of the budget as if its distribution had rendered everything left when it
-started: ``E_k = V_k·S_k / R_k`` (:func:`extrapolated_variance`; ``V_k`` the variance of its image, ``S_k`` its spp
+started: ``E_k = V_k·S_k / R_k`` (:func:`~guiding.render.iterations.extrapolated_variance`; ``V_k`` the variance of its image, ``S_k`` its spp
 and ``R_k`` the spp left at its start; under a seconds budget, its counted seconds and the seconds left). Once an
 iteration that started after :data:`AUTOMATIC_MIN_SPP` spp has ``E_k > E_{k−1}``, more training no longer pays for
 the budget it takes: training stops, and the guide (refined with that iteration's data) renders the rest of the
@@ -38,7 +38,7 @@ likewise extends its current iteration to the end of a time budget). When traini
 seconds) is in :attr:`RenderResult.training_stopped`, also when the guide's own spp schedule ended it.
 
 **Snapshots.** ``snapshot`` is called with the image the render would return if it stopped now, after every pass
-that completes ``pass_spp · 2^k`` spp and after the last pass (:class:`SnapshotWriter` writes them to EXR files).
+that completes ``pass_spp · 2^k`` spp and after the last pass (:class:`~guiding.render.progress.SnapshotWriter` writes them to EXR files).
 
 Each pass goes through :class:`guiding.render.driver.PassDriver`: the device is synchronised, the pass is timed, and the
 guide updates its distributions.
@@ -57,26 +57,20 @@ its first 80 spp, which contained compilation). The bookkeeping between passes (
 from __future__ import annotations
 
 import math
-import sys
-import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
-from tqdm import tqdm
 
+from guiding.errors import GuidingError
+from guiding.guides.parameters import COMBINE_AUTOMATIC, COMBINE_LAST, COMBINE_MODES
 from guiding.render import defaults
 from guiding.render.driver import PassDriver, pass_seed
-from guiding.errors import GuidingError
-from guiding.guides.parameters import COMBINE_AUTOMATIC, COMBINE_INVERSE_VARIANCE, COMBINE_LAST, COMBINE_MODES
+from guiding.render.iterations import IterationImages, IterationStats, extrapolated_variance
 from guiding.render.pass_schedule import MIN_ITERATION_PASSES, PassSchedule
+from guiding.render.progress import Progress
 
-#: Iterations an inverse-variance combination weighs: the last four, as in Müller's implementation.
-COMBINED_ITERATIONS = 4
 #: The automatic budget trusts an iteration's variance only if it started after this many spp (Tom94's
 #: guided_path.cpp: "we only trust the variance if we drew enough samples for it to be a reliable estimate").
 AUTOMATIC_MIN_SPP = 256
@@ -131,26 +125,6 @@ class PassStats:
 
 
 @dataclass
-class IterationStats:
-    """One iteration: the passes after one of the guide's ``iteration_done`` up to the next (all passes for other
-    guides); the final one also holds the passes rendered with the frozen guide once training stopped."""
-
-    index: int
-    spp_start: int           # spp rendered before its first pass
-    spp_end: int             # spp rendered after its last pass
-    passes: int
-    seconds: float           # render + update seconds of its passes, compilation excluded (refinement included)
-    hit_rate: float          # spp-weighted mean of its passes' hit rates
-    variance: float | None = None   # estimated variance of its image, mean over pixels and channels (None: 1 pass)
-    weight: float = 0.0      # its weight in the final image
-    guide: dict = field(default_factory=dict)   # the guide's statistics at its end (see _iteration_record)
-
-    @property
-    def spp(self) -> int:
-        return self.spp_end - self.spp_start
-
-
-@dataclass
 class RenderResult:
     image: np.ndarray        # (H, W, 3) float32: the last iteration, or the combination of the last ones
     passes: list[PassStats]
@@ -196,167 +170,6 @@ def is_snapshot_spp(spp_total: int, pass_spp: int) -> bool:
     """Whether a snapshot is due after a pass that completes ``spp_total`` spp: ``pass_spp · 2^k`` (k ≥ 0)."""
     passes, rest = divmod(spp_total, pass_spp)
     return rest == 0 and passes > 0 and passes & (passes - 1) == 0
-
-
-# ------------------------------------------------------------------------------------ iteration images
-
-def iteration_variance(first: np.ndarray, second: np.ndarray, spp: int, passes: int) -> float | None:
-    """Estimated variance of an iteration's image from the spread of its pass images; None for fewer than 2 passes.
-
-    ``first`` = Σ s_j X_j and ``second`` = Σ s_j X_j² over its passes (pass image X_j of s_j spp, S = Σ s_j =
-    ``spp``). Since Var(X_j) = σ²/s_j, ``σ̂² = Σ s_j (X_j − X̄)² / (n − 1) = (second − first²/S) / (n − 1)`` is an
-    unbiased estimate of the per-sample variance σ² of each pixel and channel, and ``σ̂²/S`` of the variance of
-    the iteration's image ``X̄ = first / S``. Returns its mean over pixels and channels.
-    """
-    if passes < 2:
-        return None
-    per_sample = np.maximum(second - first * first / spp, 0.0) / (passes - 1)   # rounding can go below 0
-    return float(np.mean(per_sample / spp))
-
-
-def extrapolated_variance(variance: float | None, spent: float, left: float) -> float | None:
-    """The variance of the final image if the distribution of an iteration whose image has ``variance`` after
-    ``spent`` spp (or seconds) had rendered the ``left`` spp (seconds) left when it started: ``variance·spent /
-    left`` (the variance of a mean falls as 1/samples). None without a variance estimate, or with a zero one (no
-    pass found light: :func:`combine_iterations`), which would stop training as soon as the guide finds the light."""
-    return variance * spent / left if variance else None
-
-
-def combine_iterations(images: list[np.ndarray], variances: list[float | None]) -> tuple[np.ndarray, list[float]]:
-    """``(Σ w_k I_k, [w_k])``: iteration images weighted by the inverse of their variance, ``w_k ∝ 1/V_k``,
-    normalised to sum to one. An image without a variance estimate gets weight 0; when none has one, the last
-    image alone is returned (weight 1). A zero estimate counts as none: it comes from an image in which no pass
-    found any light (a guide that has not yet found a small source), not from an exact one, and as 1/0 it would
-    take all the weight from the iterations that found the light (a black final image)."""
-    inverse = np.array([1.0 / v if v else 0.0 for v in variances])
-    if not inverse.any():
-        inverse[-1] = 1.0
-    weights = inverse / inverse.sum()
-    image = sum(w * img for w, img in zip(weights, images) if w > 0)
-    return image, [float(w) for w in weights]
-
-
-class _IterationImages:
-    """The current iteration's running sums on the device (float64): ``Σ s_j X_j`` and ``Σ s_j X_j²`` over its
-    passes; and, on the host (float64), the finished iterations that the final image may still need."""
-
-    def __init__(self, combine: str):
-        self.combine = combine
-        self.kept: deque = deque(maxlen=COMBINED_ITERATIONS if combine == COMBINE_INVERSE_VARIANCE else 1)
-        self.first = self.second = None
-        self.spp = self.passes = 0
-
-    def add_pass(self, image, spp: int) -> None:
-        """Add a pass image (a device tensor) of ``spp`` samples per pixel (inside the pass's timed region)."""
-        x = mi.TensorXd(image)
-        if self.passes == 0:
-            # A new iteration starts from evaluated zeros (not literals), so that every pass runs the same
-            # accumulation kernel: a different first pass would be compiled in the second pass of a render.
-            self.first, self.second = dr.zeros(mi.TensorXd, x.shape), dr.zeros(mi.TensorXd, x.shape)
-            dr.make_opaque(self.first, self.second)
-        weighted = x * spp
-        self.first, self.second = self.first + weighted, self.second + weighted * x
-        dr.eval(self.first, self.second)
-        self.spp += spp
-        self.passes += 1
-
-    def _current(self) -> tuple[np.ndarray, int, float | None]:
-        first = self.first.numpy()[..., :3].astype(np.float64)
-        second = self.second.numpy()[..., :3].astype(np.float64)
-        return first / self.spp, self.spp, iteration_variance(first, second, self.spp, self.passes)
-
-    def variance(self) -> float | None:
-        """The estimated variance of the current iteration's image (:func:`iteration_variance`)."""
-        return self._current()[2]
-
-    def close(self, record: IterationStats) -> None:
-        """End the current iteration: keep its image, fill in its variance; the next pass starts a new one."""
-        image, _, record.variance = self._current()
-        self.kept.append((record, image))
-        self.spp = self.passes = 0
-
-    def image(self) -> tuple[np.ndarray, int, list[tuple[IterationStats | None, float]]]:
-        """What the render shows now: (image (H, W, 3) float64, spp it is made of, [(iteration, weight)]), with
-        the running iteration (record None) as the newest one."""
-        items = [(record, image, record.spp, record.variance) for record, image in self.kept]
-        if self.passes:
-            items.append((None, *self._current()))
-        if self.combine != COMBINE_INVERSE_VARIANCE:
-            record, image, spp, _ = items[-1]
-            return image, spp, [(record, 1.0)]
-        items = items[-COMBINED_ITERATIONS:]
-        image, weights = combine_iterations([i[1] for i in items], [i[3] for i in items])
-        spp = sum(i[2] for i, w in zip(items, weights) if w > 0)
-        return image, spp, [(i[0], w) for i, w in zip(items, weights)]
-
-
-class SnapshotWriter:
-    """A ``snapshot`` callback for :func:`render` that writes ``image_snapNNNNN.exr`` (spp zero-padded to five
-    digits, atomically) into ``folder`` and lists them in :attr:`entries` (for ``stats.json``). ``metadata``: the
-    EXR header attributes every snapshot carries (:func:`guiding.imageio.write_exr`), its spp added."""
-
-    def __init__(self, folder: str | Path, metadata: dict | None = None):
-        self.folder = Path(folder)
-        self.metadata = metadata or {}
-        self.entries: list[dict] = []
-
-    def __call__(self, spp: int, image: np.ndarray, seconds: float, spp_in_image: int) -> None:
-        from guiding.imageio import write_exr
-
-        name = f"image_snap{spp:05d}.exr"
-        # Listed before it is written: a Ctrl-C that lands between the file's rename and its listing (Mitsuba
-        # delivers it late) must still find the file to remove; stats.json, written last, never lists a failed one.
-        self.entries.append({"spp": spp, "file": name, "seconds": seconds, "spp_in_image": spp_in_image})
-        write_exr(self.folder / name, image, {**self.metadata, "spp": spp, "spp_in_image": spp_in_image})
-
-
-#: Seconds between two progress lines when stderr is not a terminal (a Snakemake job's log, a pipe): often enough to
-#: show that a long reference is alive, rarely enough to keep its log short.
-PROGRESS_LINE_SECONDS = 10.0
-
-
-class _Progress:
-    """Progress of a render on stderr, with its ETA: a tqdm bar on a terminal; elsewhere (a Snakemake job's log, a
-    pipe), where a redrawn bar would be one endless line, a plain line of tqdm's meter every
-    :data:`PROGRESS_LINE_SECONDS` and one when the budget is spent.
-
-    ``budget``: the render's budget (spp, or counted seconds, are the progress). ``enabled``: None: the bar on a
-    terminal, lines elsewhere; True: the bar; False: nothing.
-    """
-
-    def __init__(self, budget: Budget, enabled: bool | None):
-        self.by_spp = budget.spp is not None
-        self.total = budget.spp if self.by_spp else budget.seconds
-        amount = "{n:g}/{total:g} spp" if self.by_spp else "{n:.1f}/{total:g} s counted"
-        self.lines = enabled is None and not sys.stderr.isatty()
-        self.started = time.monotonic()
-        self.last_line = -math.inf
-        self.bar = None
-        if enabled or (enabled is None and not self.lines):
-            meter = "{desc}: {percentage:3.0f}%|{bar}| " + amount + " [{elapsed}<{remaining}{postfix}]"
-            self.bar = tqdm(total=self.total, desc="render", file=sys.stderr, bar_format=meter)
-        self.line_format = "{desc}: " + amount + " ({percentage:.0f}%), {elapsed} elapsed, ETA {remaining}{postfix}"
-
-    def _done(self, spp: int, counted: float) -> float:
-        return spp if self.by_spp else min(counted, self.total)
-
-    def show(self, spp: int, counted: float) -> None:
-        """After a pass: ``spp`` samples per pixel rendered, ``counted`` seconds counted against the budget."""
-        done = self._done(spp, counted)
-        postfix = None if self.by_spp else f"{spp} spp"
-        if self.bar is not None:
-            self.bar.set_postfix_str(postfix or "", refresh=False)
-            self.bar.update(done - self.bar.n)
-            return
-        now = time.monotonic()
-        if self.lines and (now - self.last_line >= PROGRESS_LINE_SECONDS or done >= self.total):
-            self.last_line = now
-            print(tqdm.format_meter(done, self.total, now - self.started, prefix="render", postfix=postfix,
-                                    bar_format=self.line_format), file=sys.stderr, flush=True)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
 
 
 def _iteration_record(index: int, passes: list[PassStats]) -> IterationStats:
@@ -408,130 +221,168 @@ def render(scene: mi.Scene, integrator: mi.SamplingIntegrator, budget: Budget, s
       budget: when to stop (:class:`Budget`).
       seed: run seed; pass ``i`` uses ``pass_seed(seed, i)``.
       progress: progress on stderr with an ETA: None (default) a bar on a terminal and a plain line every
-        :data:`PROGRESS_LINE_SECONDS` elsewhere (e.g. a Snakemake log), True the bar, False nothing.
+        :data:`~guiding.render.progress.PROGRESS_LINE_SECONDS` elsewhere (e.g. a Snakemake log), True the bar,
+        False nothing.
       sensor: the sensor to render, or its index.
       combine: the final image of a guide with iterations: ``"last"``, ``"automatic"`` or ``"inverse-variance"``
         (module docstring); None (default): the guide's own (:func:`resolve_combine`).
       snapshot: called as ``snapshot(spp_total, image, counted_seconds, spp_in_image)`` with the image the render
         would return now (float64), after each pass that completes ``pass_spp · 2^k`` spp and after the last
-        pass (e.g. a :class:`SnapshotWriter`).
+        pass (e.g. a :class:`~guiding.render.progress.SnapshotWriter`).
       on_pass: called as ``on_pass(stats, image)`` after every pass with its statistics and its own image
         ((H, W, 3) float64).
     """
-    combine = resolve_combine(combine, integrator)
-    driver = PassDriver(scene, integrator, sensor)
-    driver.prepare(budget.spp)
-    guide = driver.guide
-
-    film = (scene.sensors()[sensor] if isinstance(sensor, int) else sensor).film()
-    schedule = PassSchedule(budget.pass_spp, int(np.prod(film.crop_size())), budget.growing_passes,
-                            budget.exclude_passes)
-    images = _IterationImages(combine)
-    passes: list[PassStats] = []
-    iterations: list[IterationStats] = []
-    training_stopped = None
-    display = _Progress(budget, progress)
-    spp_total, counted = 0, 0.0
-    snapshot_spp = None
-    last_extrapolated = math.inf     # the automatic budget's E_{k-1}
-
-    def current_iteration() -> IterationStats:
-        return _iteration_record(len(iterations), passes[len(passes) - images.passes:])
-
-    def close_iteration(record: IterationStats) -> None:
-        images.close(record)
-        iterations.append(record)
-
-    def snapshot_limit() -> int | None:
-        """The spp up to the next snapshot (at ``pass_spp·2^k``), so that no pass runs past one."""
-        if snapshot is None:
-            return None
-        boundary = budget.pass_spp
-        while boundary <= spp_total:
-            boundary *= 2
-        return boundary - spp_total
-
-    def take_snapshot() -> None:
-        nonlocal snapshot_spp
-        image, spp_in_image, _ = images.image()
-        snapshot(spp_total, image, counted, spp_in_image)
-        snapshot_spp = spp_total
-
+    run = _ProgressiveRender(scene, integrator, budget, resolve_combine(combine, integrator), sensor, snapshot)
+    display = Progress(budget, progress)
     try:
-        while True:
-            if budget.spp is not None:
-                if spp_total >= budget.spp:
-                    break
-                left = budget.spp - spp_total
-                spp = min(schedule.next(*_guide_limits(guide, spp_total), snapshot_limit(), left), left)
-            else:
-                if counted >= budget.seconds:
-                    break
-                fitting = None
-                if passes and passes[-1].counted_seconds > 0:   # at the seconds per spp of the last pass
-                    fitting = int((budget.seconds - counted) * passes[-1].spp / passes[-1].counted_seconds)
-                spp = schedule.next(*_guide_limits(guide, spp_total), snapshot_limit(), fitting)
-            index = len(passes)
-
-            # ------------------------------ Render and update ------------------------------
-            recorded = guide is not None and guide.records()
-            outcome = driver.run(pass_seed(seed, index), spp, accumulate=lambda image: images.add_pass(image, spp))
-            spp_total += spp
-            passes.append(PassStats(index, spp, spp_total, outcome.seconds, outcome.update_seconds,
-                                    outcome.kernels.compile_seconds, outcome.kernels.launched,
-                                    outcome.kernels.compiled, outcome.hit_rate, outcome.update.stats,
-                                    outcome.update.iteration_done, outcome.kernels.execution_seconds))
-            if index >= budget.exclude_passes:
-                counted += passes[-1].counted_seconds
-            display.show(spp_total, counted)
-
-            # --------------------- Schedule and bookkeeping (not timed) ----------------------
-            if outcome.update.iteration_done:
-                ended = current_iteration()
-                stop = None
-                if budget.seconds is not None and guide.records() and guide.iteration_spp() is not None:
-                    next_spp, remaining = guide.iteration_spp(), budget.seconds - counted
-                    fits, estimate = next_iteration_fits(ended, next_spp, remaining)
-                    if not fits:
-                        stop = {"reason": "seconds budget: the next iteration would not fit",
-                                "next_iteration_spp": next_spp, "next_iteration_seconds_estimate": estimate,
-                                "remaining_seconds": remaining}
-                # (Also before the schedule's own final iteration: stopping there keeps this iteration's samples.)
-                if stop is None and combine == COMBINE_AUTOMATIC:
-                    if budget.spp is not None:
-                        spent, left = ended.spp, budget.spp - ended.spp_start
-                    else:
-                        spent, left = ended.seconds, budget.seconds - (counted - ended.seconds)
-                    extrapolated = extrapolated_variance(images.variance(), spent, left)
-                    if ended.spp_start > AUTOMATIC_MIN_SPP and extrapolated is not None \
-                            and extrapolated > last_extrapolated:
-                        stop = {"reason": "automatic budget: the extrapolated variance rose",
-                                "extrapolated_variance": extrapolated,
-                                "previous_extrapolated_variance": last_extrapolated}
-                    last_extrapolated = math.inf if extrapolated is None else extrapolated
-                if stop is None:
-                    close_iteration(ended)
-                else:
-                    # The iteration that just ended becomes the final one: the frozen guide (refined with its
-                    # data) renders the rest of the budget into its image, so no sample is discarded.
-                    guide.stop_training()
-                    training_stopped = {"spp": spp_total, "seconds": counted, "iteration": ended.index, **stop}
-            if recorded and not guide.records() and training_stopped is None:
-                training_stopped = {"spp": spp_total, "seconds": counted,
-                                    "reason": "the guide's schedule: its final iteration records nothing"}
+        while (spp := run.next_pass_spp()) is not None:
+            stats, image = run.render_pass(seed, spp)
+            display.show(run.spp_total, run.counted)
+            run.after_pass(stats)
             if on_pass is not None:
-                on_pass(passes[-1], outcome.image.numpy()[..., :3].astype(np.float64))
-            if snapshot is not None and is_snapshot_spp(spp_total, budget.pass_spp):
-                take_snapshot()
-        if images.passes:
-            close_iteration(current_iteration())   # the final iteration: the rest of the budget after the last boundary
-        if snapshot is not None and passes and snapshot_spp != spp_total:
-            take_snapshot()
+                on_pass(stats, image.numpy()[..., :3].astype(np.float64))
+            if snapshot is not None and is_snapshot_spp(run.spp_total, budget.pass_spp):
+                run.take_snapshot()
+        run.finish()
     finally:
         display.close()
+    return run.result()
 
-    image, spp_in_image, weights = images.image()
-    for record, weight in weights:
-        record.weight = weight
-    return RenderResult(image.astype(np.float32), passes, budget, spp_in_image, combine, iterations,
-                        training_stopped)
+
+class _ProgressiveRender:
+    """The state of one :func:`render`: its passes, iterations and images, and the decisions between passes."""
+
+    def __init__(self, scene, integrator, budget: Budget, combine: str, sensor, snapshot):
+        self.budget, self.combine, self.snapshot = budget, combine, snapshot
+        self.driver = PassDriver(scene, integrator, sensor)
+        self.driver.prepare(budget.spp)
+        self.guide = self.driver.guide
+        film = (scene.sensors()[sensor] if isinstance(sensor, int) else sensor).film()
+        self.schedule = PassSchedule(budget.pass_spp, int(np.prod(film.crop_size())), budget.growing_passes,
+                                     budget.exclude_passes)
+        self.images = IterationImages(combine)
+        self.passes: list[PassStats] = []
+        self.iterations: list[IterationStats] = []
+        self.training_stopped = None
+        self.spp_total, self.counted = 0, 0.0
+        self.snapshot_spp = None
+        self.last_extrapolated = math.inf     # the automatic budget's E_{k-1}
+        self.recorded = False                 # whether the last pass recorded (the guide learned from it)
+
+    # ------------------------------------------------------------------------------ passes
+    def next_pass_spp(self) -> int | None:
+        """The spp of the next pass, or None once the budget is spent."""
+        budget, limits = self.budget, (*_guide_limits(self.guide, self.spp_total), self._snapshot_limit())
+        if budget.spp is not None:
+            if self.spp_total >= budget.spp:
+                return None
+            left = budget.spp - self.spp_total
+            return min(self.schedule.next(*limits, left), left)
+        if self.counted >= budget.seconds:
+            return None
+        fitting = None
+        last = self.passes[-1] if self.passes else None
+        if last is not None and last.counted_seconds > 0:   # at the seconds per spp of the last pass
+            fitting = int((budget.seconds - self.counted) * last.spp / last.counted_seconds)
+        return self.schedule.next(*limits, fitting)
+
+    def render_pass(self, seed: int, spp: int) -> tuple[PassStats, mi.TensorXf]:
+        """Render and update (the timed part): the pass's statistics and its own image."""
+        index = len(self.passes)
+        self.recorded = self.guide is not None and self.guide.records()
+        outcome = self.driver.run(pass_seed(seed, index), spp,
+                                  accumulate=lambda image: self.images.add_pass(image, spp))
+        self.spp_total += spp
+        stats = PassStats(index, spp, self.spp_total, outcome.seconds, outcome.update_seconds,
+                          outcome.kernels.compile_seconds, outcome.kernels.launched, outcome.kernels.compiled,
+                          outcome.hit_rate, outcome.update.stats, outcome.update.iteration_done,
+                          outcome.kernels.execution_seconds)
+        self.passes.append(stats)
+        if index >= self.budget.exclude_passes:
+            self.counted += stats.counted_seconds
+        return stats, outcome.image
+
+    def after_pass(self, stats: PassStats) -> None:
+        """Schedule and bookkeeping (not timed): an iteration that ended is closed, or training stops there."""
+        guide = self.guide
+        if stats.iteration_done:
+            ended = self._current_iteration()
+            stop = self._seconds_stop(ended)
+            # (Also before the schedule's own final iteration: stopping there keeps this iteration's samples.)
+            if stop is None and self.combine == COMBINE_AUTOMATIC:
+                stop = self._automatic_stop(ended)
+            if stop is None:
+                self._close_iteration(ended)
+            else:
+                # The iteration that just ended becomes the final one: the frozen guide (refined with its data)
+                # renders the rest of the budget into its image, so no sample is discarded.
+                guide.stop_training()
+                self.training_stopped = {"spp": self.spp_total, "seconds": self.counted, "iteration": ended.index,
+                                         **stop}
+        if self.recorded and not guide.records() and self.training_stopped is None:
+            self.training_stopped = {"spp": self.spp_total, "seconds": self.counted,
+                                     "reason": "the guide's schedule: its final iteration records nothing"}
+
+    def finish(self) -> None:
+        """After the last pass: the final iteration (the rest of the budget after the last boundary), the last
+        snapshot."""
+        if self.images.passes:
+            self._close_iteration(self._current_iteration())
+        if self.snapshot is not None and self.passes and self.snapshot_spp != self.spp_total:
+            self.take_snapshot()
+
+    def result(self) -> RenderResult:
+        image, spp_in_image, weights = self.images.image()
+        for record, weight in weights:
+            record.weight = weight
+        return RenderResult(image.astype(np.float32), self.passes, self.budget, spp_in_image, self.combine,
+                            self.iterations, self.training_stopped)
+
+    # -------------------------------------------------------------------------- iterations
+    def _current_iteration(self) -> IterationStats:
+        return _iteration_record(len(self.iterations), self.passes[len(self.passes) - self.images.passes:])
+
+    def _close_iteration(self, record: IterationStats) -> None:
+        self.images.close(record)
+        self.iterations.append(record)
+
+    def _seconds_stop(self, ended: IterationStats) -> dict | None:
+        """Why training stops under a seconds budget (the next iteration would not fit), or None."""
+        budget, guide = self.budget, self.guide
+        if budget.seconds is None or not guide.records() or guide.iteration_spp() is None:
+            return None
+        next_spp, remaining = guide.iteration_spp(), budget.seconds - self.counted
+        fits, estimate = next_iteration_fits(ended, next_spp, remaining)
+        if fits:
+            return None
+        return {"reason": "seconds budget: the next iteration would not fit", "next_iteration_spp": next_spp,
+                "next_iteration_seconds_estimate": estimate, "remaining_seconds": remaining}
+
+    def _automatic_stop(self, ended: IterationStats) -> dict | None:
+        """Why the automatic budget stops training (the extrapolated variance rose), or None."""
+        budget = self.budget
+        if budget.spp is not None:
+            spent, left = ended.spp, budget.spp - ended.spp_start
+        else:
+            spent, left = ended.seconds, budget.seconds - (self.counted - ended.seconds)
+        extrapolated = extrapolated_variance(self.images.variance(), spent, left)
+        previous, self.last_extrapolated = self.last_extrapolated, math.inf if extrapolated is None else extrapolated
+        if ended.spp_start > AUTOMATIC_MIN_SPP and extrapolated is not None and extrapolated > previous:
+            return {"reason": "automatic budget: the extrapolated variance rose", "extrapolated_variance": extrapolated,
+                    "previous_extrapolated_variance": previous}
+        return None
+
+    # --------------------------------------------------------------------------- snapshots
+    def _snapshot_limit(self) -> int | None:
+        """The spp up to the next snapshot (at ``pass_spp·2^k``), so that no pass runs past one."""
+        if self.snapshot is None:
+            return None
+        boundary = self.budget.pass_spp
+        while boundary <= self.spp_total:
+            boundary *= 2
+        return boundary - self.spp_total
+
+    def take_snapshot(self) -> None:
+        image, spp_in_image, _ = self.images.image()
+        self.snapshot(self.spp_total, image, self.counted, spp_in_image)
+        self.snapshot_spp = self.spp_total

@@ -1,0 +1,127 @@
+"""The images of a render's iterations and the final image made of them (``combine``, see
+:mod:`guiding.render.progressive`): each iteration's running sums on the device, its variance estimated from the
+spread of its pass images, and the inverse-variance combination of the last ones."""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from guiding.guides.parameters import COMBINE_INVERSE_VARIANCE
+
+#: Iterations an inverse-variance combination weighs: the last four, as in Müller's implementation.
+COMBINED_ITERATIONS = 4
+
+
+@dataclass
+class IterationStats:
+    """One iteration: the passes after one of the guide's ``iteration_done`` up to the next (all passes for other
+    guides); the final one also holds the passes rendered with the frozen guide once training stopped."""
+
+    index: int
+    spp_start: int           # spp rendered before its first pass
+    spp_end: int             # spp rendered after its last pass
+    passes: int
+    seconds: float           # render + update seconds of its passes, compilation excluded (refinement included)
+    hit_rate: float          # spp-weighted mean of its passes' hit rates
+    variance: float | None = None   # estimated variance of its image, mean over pixels and channels (None: 1 pass)
+    weight: float = 0.0      # its weight in the final image
+    guide: dict = field(default_factory=dict)   # the guide's statistics at its end (see _iteration_record)
+
+    @property
+    def spp(self) -> int:
+        return self.spp_end - self.spp_start
+
+
+def iteration_variance(first: np.ndarray, second: np.ndarray, spp: int, passes: int) -> float | None:
+    """Estimated variance of an iteration's image from the spread of its pass images; None for fewer than 2 passes.
+
+    ``first`` = Σ s_j X_j and ``second`` = Σ s_j X_j² over its passes (pass image X_j of s_j spp, S = Σ s_j =
+    ``spp``). Since Var(X_j) = σ²/s_j, ``σ̂² = Σ s_j (X_j − X̄)² / (n − 1) = (second − first²/S) / (n − 1)`` is an
+    unbiased estimate of the per-sample variance σ² of each pixel and channel, and ``σ̂²/S`` of the variance of
+    the iteration's image ``X̄ = first / S``. Returns its mean over pixels and channels.
+    """
+    if passes < 2:
+        return None
+    per_sample = np.maximum(second - first * first / spp, 0.0) / (passes - 1)   # rounding can go below 0
+    return float(np.mean(per_sample / spp))
+
+
+def extrapolated_variance(variance: float | None, spent: float, left: float) -> float | None:
+    """The variance of the final image if the distribution of an iteration whose image has ``variance`` after
+    ``spent`` spp (or seconds) had rendered the ``left`` spp (seconds) left when it started: ``variance·spent /
+    left`` (the variance of a mean falls as 1/samples). None without a variance estimate, or with a zero one (no
+    pass found light: :func:`combine_iterations`), which would stop training as soon as the guide finds the light."""
+    return variance * spent / left if variance else None
+
+
+def combine_iterations(images: list[np.ndarray], variances: list[float | None]) -> tuple[np.ndarray, list[float]]:
+    """``(Σ w_k I_k, [w_k])``: iteration images weighted by the inverse of their variance, ``w_k ∝ 1/V_k``,
+    normalised to sum to one. An image without a variance estimate gets weight 0; when none has one, the last
+    image alone is returned (weight 1). A zero estimate counts as none: it comes from an image in which no pass
+    found any light (a guide that has not yet found a small source), not from an exact one, and as 1/0 it would
+    take all the weight from the iterations that found the light (a black final image)."""
+    inverse = np.array([1.0 / v if v else 0.0 for v in variances])
+    if not inverse.any():
+        inverse[-1] = 1.0
+    weights = inverse / inverse.sum()
+    image = sum(w * img for w, img in zip(weights, images) if w > 0)
+    return image, [float(w) for w in weights]
+
+
+class IterationImages:
+    """The current iteration's running sums on the device (float64): ``Σ s_j X_j`` and ``Σ s_j X_j²`` over its
+    passes; and, on the host (float64), the finished iterations that the final image may still need."""
+
+    def __init__(self, combine: str):
+        self.combine = combine
+        self.kept: deque = deque(maxlen=COMBINED_ITERATIONS if combine == COMBINE_INVERSE_VARIANCE else 1)
+        self.first = self.second = None
+        self.spp = self.passes = 0
+
+    def add_pass(self, image, spp: int) -> None:
+        """Add a pass image (a device tensor) of ``spp`` samples per pixel (inside the pass's timed region)."""
+        x = mi.TensorXd(image)
+        if self.passes == 0:
+            # A new iteration starts from evaluated zeros (not literals), so that every pass runs the same
+            # accumulation kernel: a different first pass would be compiled in the second pass of a render.
+            self.first, self.second = dr.zeros(mi.TensorXd, x.shape), dr.zeros(mi.TensorXd, x.shape)
+            dr.make_opaque(self.first, self.second)
+        weighted = x * spp
+        self.first, self.second = self.first + weighted, self.second + weighted * x
+        dr.eval(self.first, self.second)
+        self.spp += spp
+        self.passes += 1
+
+    def _current(self) -> tuple[np.ndarray, int, float | None]:
+        first = self.first.numpy()[..., :3].astype(np.float64)
+        second = self.second.numpy()[..., :3].astype(np.float64)
+        return first / self.spp, self.spp, iteration_variance(first, second, self.spp, self.passes)
+
+    def variance(self) -> float | None:
+        """The estimated variance of the current iteration's image (:func:`iteration_variance`)."""
+        return self._current()[2]
+
+    def close(self, record: IterationStats) -> None:
+        """End the current iteration: keep its image, fill in its variance; the next pass starts a new one."""
+        image, _, record.variance = self._current()
+        self.kept.append((record, image))
+        self.spp = self.passes = 0
+
+    def image(self) -> tuple[np.ndarray, int, list[tuple[IterationStats | None, float]]]:
+        """What the render shows now: (image (H, W, 3) float64, spp it is made of, [(iteration, weight)]), with
+        the running iteration (record None) as the newest one."""
+        items = [(record, image, record.spp, record.variance) for record, image in self.kept]
+        if self.passes:
+            items.append((None, *self._current()))
+        if self.combine != COMBINE_INVERSE_VARIANCE:
+            record, image, spp, _ = items[-1]
+            return image, spp, [(record, 1.0)]
+        items = items[-COMBINED_ITERATIONS:]
+        image, weights = combine_iterations([i[1] for i in items], [i[3] for i in items])
+        spp = sum(i[2] for i, w in zip(items, weights) if w > 0)
+        return image, spp, [(i[0], w) for i, w in zip(items, weights)]
