@@ -8,7 +8,7 @@ import pytest
 from guiding.guides.alias_rows import SLOT_FIELDS
 from guiding.guides.grid.guide import GridGuide, GridVertex
 from guiding.guides.grid.record import PAIR_FIELDS
-from guiding.guides.grid.vertex_log import NO_RECORD
+from guiding.guides.vertex_log import NO_RECORD
 
 ALBEDO = 0.6
 

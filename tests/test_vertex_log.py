@@ -12,7 +12,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from guiding.guides.grid.vertex_log import NO_RECORD, VertexLog, walk_backward
+from guiding.guides.vertex_log import NO_RECORD, VertexLog, walk_backward
 
 MAX_DEPTH = 8
 LANES = 1024            # many packets, on any vector width

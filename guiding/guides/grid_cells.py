@@ -1,5 +1,5 @@
 """The cells of a uniform ``S³`` grid over the scene's bounding box: where the grid guide's radiance record
-(:mod:`guiding.guides.grid.record`) and the quadtree grid (:class:`~guiding.guides.trees.sdtree.QuadtreeGridGuide`) keep
+(:mod:`guiding.guides.grid.record`) and the quadtree grid (:class:`~guiding.guides.trees.quadtree_grid.QuadtreeGridGuide`) keep
 what they learn about a position.
 
 Cell ``(x, y, z)`` is flat index ``(z·S + y)·S + x``; a point outside the box belongs to the nearest cell.

@@ -63,7 +63,7 @@ METHODS: dict[str, Method] = {
     "sdtree": Method("guiding.guides.trees.sdtree", "SDTreeGuide", SDTreeParameters()),
     "sdtree-last": Method("guiding.guides.trees.sdtree", "SDTreeGuide", SDTreeParameters(combine="last")),
     "sdtree-learned": Method("guiding.guides.trees.sdtree", "SDTreeGuide", SDTreeParameters(learn_bsdf_fraction=True)),
-    "quadtree-grid": Method("guiding.guides.trees.sdtree", "QuadtreeGridGuide", QuadtreeGridParameters()),
+    "quadtree-grid": Method("guiding.guides.trees.quadtree_grid", "QuadtreeGridGuide", QuadtreeGridParameters()),
     "ours": _grid(rule="sarsa", sampler="hemi_rej_plus"),
     "ours-uniform-proposals": _grid(rule="sarsa", sampler="hemi_rej_plus", proposal="uniform"),
     "ours-no-rejopt": _grid(rule="sarsa", sampler="hemi_rej"),

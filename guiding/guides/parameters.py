@@ -280,7 +280,7 @@ class SDTreeParameters(TreeParameters):
 
 @dataclass(frozen=True)
 class QuadtreeGridParameters(TreeParameters):
-    """Kim & Kim's "Quadtree" baseline (:class:`~guiding.guides.trees.sdtree.QuadtreeGridGuide`): the fields of
+    """Kim & Kim's "Quadtree" baseline (:class:`~guiding.guides.trees.quadtree_grid.QuadtreeGridGuide`): the fields of
     :class:`TreeParameters`, and
 
     Parameters:

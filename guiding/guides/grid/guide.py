@@ -50,7 +50,7 @@ from guiding.guides.grid.lambertian import LambertianBsdfs, LambertianVertex
 from guiding.guides.grid.record import IN_BIN_PROPOSALS, PairMemo, RadianceRecord, table_needs
 from guiding.guides.parameters import (PROFILE_BSDF_PATHS, PROFILE_HOT_ROWS, PROFILE_STAGES, PROFILE_TRAINING_PASSES, GridParameters,
                          with_overrides)
-from guiding.guides.grid.vertex_log import NO_RECORD, VertexLog, known_or_found, walk_backward
+from guiding.guides.vertex_log import NO_RECORD, VertexLog, known_or_found, walk_backward
 
 
 @dataclass
