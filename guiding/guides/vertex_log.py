@@ -100,8 +100,8 @@ class VertexLog:
         """The loop state of ``size`` paths, none of their vertices logged yet: one value per lane of each field.
 
         Only the iteration indexes local memory: Dr.Jit 1.5's CPU backend takes an index of width 1 for the packet's
-        largest in its active lanes, which wrote every lane's vertex at the largest count while a per-lane count
-        indexed the log (README, "Fixed 2026-12-04"); every lane still in the loop is at the same iteration."""
+        largest in its active lanes, so a per-lane count would write every lane's vertex at the largest count; every
+        lane still in the loop is at the same iteration."""
         return self._cursor(entries=dr.alloc_local(self._entry, self.max_depth), step=dr.zeros(mi.UInt32, size),
                             first=dr.zeros(mi.UInt32, size), n=dr.zeros(mi.UInt32, size))
 
