@@ -126,11 +126,11 @@ def _add_bench(commands) -> None:
     bench.add_argument("--part", choices=["cost", "pass-schedule", "kernel-size", "profile", "gathers"],
                        default="cost",
                        help="cost: cost per spp and its breakdown (default); pass-schedule: renders with fixed, "
-                       "growing and frozen passes (results/pass_schedule); kernel-size: each method's render kernel in "
-                       "machine instructions (CPU; results/bench/kernel_instructions); profile: each method's CPU time by "
-                       "code, JIT kernels against Embree and the rest (Linux perf; results/bench/profile_cpu); gathers: "
-                       "each method with table reads compiled into gather instructions and into scalar loads (CPU with "
-                       "AVX2; results/bench/hardware_gathers)")
+                       "growing and frozen passes (results/pass_schedule); kernel-size: each method's render kernel "
+                       "in machine instructions (CPU; results/bench/kernel_instructions); profile: each method's CPU "
+                       "time by code, JIT kernels against Embree and the rest (Linux perf; results/bench/profile_cpu); "
+                       "gathers: each method with table reads compiled into gather instructions and into scalar loads "
+                       "(CPU with AVX2; results/bench/hardware_gathers)")
     bench.add_argument("--scenes", help="comma-separated NAME:SCALE list (default: cost: the four shared scenes at 1/4 "
                        "resolution, glossy-box and mirror-box, the scenes with nothing to guide; pass-schedule: those "
                        "of config/paper.yaml's equal-time experiment; kernel-size: the four at 1/16; profile and "

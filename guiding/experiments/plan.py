@@ -50,8 +50,8 @@ class Plan:
         try:
             return self._by_key[key]
         except KeyError:
-            raise ConfigError(f"no run {'/'.join(key)} in this configuration (see `python -m guiding.experiments.harness runs`)")\
-                from None
+            raise ConfigError(f"no run {'/'.join(key)} in this configuration "
+                              "(see `python -m guiding.experiments.harness runs`)") from None
 
     def scene_file(self, scene: str) -> list[str]:
         """The scene's XML file as a job input (so an edited scene re-renders), or nothing when it is not on the
@@ -156,8 +156,8 @@ class Plan:
 
 
     def comparison_job(self, experiment: str) -> dict:
-        """What :func:`guiding.experiments.figures.comparison` draws for ``experiment``: per scene, the first seed's renders at
-        the experiment's last budget point, and the reference."""
+        """What :func:`guiding.experiments.figures.comparison` draws for ``experiment``: per scene, the first seed's
+        renders at the experiment's last budget point, and the reference."""
         runs = self.experiment_runs(experiment)
         seed, tag = runs[0].seed, runs[-1].budget.tag
         rows = []

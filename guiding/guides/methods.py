@@ -61,7 +61,7 @@ def _quadtree_grid_guide(parameters, label: str) -> Guide:
 
 
 #: The resolution fields that the name shorthand and the labels write as suffixes: ``-S<n>``, ``-D<n>``.
-SHORTHAND = {"spatial_resolution": "S", "directional_resolution": "D"}
+RESOLUTION_SUFFIXES = {"spatial_resolution": "S", "directional_resolution": "D"}
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class Method:
         """A readable name: the registered name, S and D set as the shorthand suffixes, other settings in
         parentheses (``ours-S4-D8``, ``sarsa-hemi_inv (bsdf_fraction=0.0)``)."""
         settings = dict(self.settings)
-        suffixes = "".join(f"-{letter}{settings.pop(field)}" for field, letter in SHORTHAND.items()
+        suffixes = "".join(f"-{letter}{settings.pop(field)}" for field, letter in RESOLUTION_SUFFIXES.items()
                            if field in settings)
         others = ", ".join(f"{field}={value}" for field, value in settings.items())
         return self.name + suffixes + (f" ({others})" if others else "")
@@ -271,7 +271,7 @@ _REGISTERED = {
 }
 METHODS: dict[str, Method] = {name: Method(name, guide, parameters)
                               for name, (guide, parameters) in _REGISTERED.items()}
-_SHORTHAND = re.compile(r"^(?P<base>.+?)(?:-S(?P<S>\d+))?(?:-D(?P<D>\d+))?$")
+_SUFFIXED_NAME = re.compile(r"^(?P<base>.+?)(?:-S(?P<S>\d+))?(?:-D(?P<D>\d+))?$")
 
 
 def method_names() -> list[str]:
@@ -288,10 +288,11 @@ def resolve(name: str, settings: Mapping[str, object] | None = None) -> Method:
     (UnknownMethod if no method has that name, BadSetting if it does not take the settings)."""
     method = METHODS.get(name)
     if method is None:
-        match = _SHORTHAND.match(name)
+        match = _SUFFIXED_NAME.match(name)
         base = METHODS.get(match["base"]) if match and (match["S"] or match["D"]) else None
         types = base.field_types() if base is not None else {}
-        suffixes = {field: int(match[letter]) for field, letter in SHORTHAND.items() if base and match[letter]}
+        suffixes = {field: int(match[letter]) for field, letter in RESOLUTION_SUFFIXES.items()
+                    if base is not None and match[letter]}
         if base is None or not set(suffixes) <= set(types):
             raise UnknownMethod(_unknown_message(name))
         method = base.with_settings(suffixes)
