@@ -98,9 +98,9 @@ class GridParameters:
         :mod:`guiding.render.pass_schedule`); the targets of the passes in between are kept and folded in at the next
         rebuild. Default 0: after every pass (the paper's).
       statistics: count, per pass, guided vertices, invalid samples, rejection proposals and acceptances (default
-        False). The counters are atomics on 1-element arrays, several per bounce (measured: ``ours`` 301 against
-        237 ms/spp without them on cornell-box at scale 0.25); they are traced only when on, and only then does
-        ``update()`` report ``guided_samples``, ``invalid_share``, ``acceptance_rate`` and
+        False; :mod:`~guiding.guides.grid.counters`). The counters are atomics on 1-element arrays, several per
+        bounce, a good part of its cost (the benchmark's ``[+statistics]`` stage); they are traced only when on, and
+        only then does ``update()`` report ``guided_samples``, ``invalid_share``, ``acceptance_rate`` and
         ``proposals_per_sample``. They never touch the image.
     """
 

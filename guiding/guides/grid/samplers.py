@@ -13,14 +13,14 @@ the BSDF share of its mixture. They are used only at surfaces whose BSDF the gui
 Every sampler is a one-sample mixture with BSDF sampling, ``p = α·p_bsdf + (1 − α)·p_guide``, and reports that
 density exactly. The BSDF share α bounds the weight ``f·cos/p`` of a diffuse vertex by ρ/α and gives every direction
 with f·cos > 0 a positive density. For the inversion samplers α = ``bsdf_fraction`` (0.5; 0 is the paper's pure
-sampler, whose weight reached 97·ρ at door-ajar vertices: a few paths carried most of the image). For the rejection
-samplers α = 1 − (1 − u)·(1 − r): u = max(ε_r, ``min_bsdf_share``), where the paper mixes ε_r of a uniform density
-into the target instead (ours draws it from the BSDF: a weight bound of 2ρ rather than 4ρ at ε_r = ½), and r, the
-share of draws whose proposals were all rejected and that fall back to the BSDF's direction.
+sampler, whose weights are heavy-tailed: a few paths carried most of the image, results/bounce_weights.md). For the
+rejection samplers α = 1 − (1 − u)·(1 − r): u = max(ε_r, ``min_bsdf_share``), where the paper mixes ε_r of a uniform
+density into the target instead (ours draws it from the BSDF: a weight bound of 2ρ rather than 4ρ at ε_r = ½), and
+r, the share of draws whose proposals were all rejected and that fall back to the BSDF's direction.
 
 The rejection target uses the normal bin's centre ``n_c``: the memoised ``N = ∫ P·cos⁺(ω, n_c)`` is exact for it
 at every true normal, so the samplers are exact by construction (with N taken at n_c but the cosine at the true
-normal, each bounce was off by N(n_c)/N(n): ``ours`` was +1.25 ± 0.29 % off ``path`` on the tilted Cornell box).
+normal, each bounce was off by N(n_c)/N(n), a bias seen on the tilted Cornell box: README).
 Target directions below the true surface have f = 0 and weight 0. The proposals:
   ``bins``     without a loop: a bin k from the pair's alias table of ``P_k·∫_k cos⁺``, then a direction of the bin
                ∝ ``cos(ω, n_c)``, the first of ``IN_BIN_PROPOSALS`` uniform proposals in the bin accepted against
