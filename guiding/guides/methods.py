@@ -118,9 +118,10 @@ class Method:
         parameters = self.grid_parameters
         if parameters is None:
             return None
-        from guiding.guides.grid.record import RadianceRecord, table_needs
+        from guiding.guides.grid.record import RadianceRecord
+        from guiding.guides.grid.strategy import grid_strategy
 
-        needs = table_needs(parameters.rule, parameters.sampler, parameters.proposal)
+        needs = grid_strategy(parameters).table_needs()
         return RadianceRecord.planned_bytes(parameters.spatial_resolution, parameters.directional_resolution,
                                             parameters.normal_resolution, **needs,
                                             sub_resolution=parameters.sub_resolution,
