@@ -25,13 +25,15 @@ Tree guides: :class:`SamplingOnly` (``[no record]``), the method's own trees sam
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import drjit as dr
 import mitsuba as mi
 
 from guiding.guides.base import NoPathState, UpdateResult
 from guiding.guides.grid.guide import GridGuide
 from guiding.guides.grid.strategy import grid_strategy
-from guiding.guides.methods import check_memory, grid_parameters, table_bytes
+from guiding.guides.methods import resolve
 from guiding.guides.parameters import GridParameters, with_overrides
 
 #: Passes a partial stage records before it stops (the benchmark's warm-up passes).
@@ -123,10 +125,7 @@ class HotRowsStage(GridInstrument):
 def instrumented_guide(method: str, instrument: type[GridInstrument]) -> GridInstrument:
     """A fresh guide of grid method ``method`` (a name of :mod:`guiding.guides.methods`) with ``instrument``, one of
     this module's stages; refused, as ``make_guide`` refuses it, if its tables would exceed the memory limit."""
-    allowed = check_memory(method)
-    guide = instrument(grid_parameters(method), name=method)
-    guide.record_table.row_memory_limit = allowed - table_bytes(method)
-    return guide
+    return replace(resolve(method), guide=lambda parameters, label: instrument(parameters, name=label)).build()
 
 
 class SamplingOnly:

@@ -18,9 +18,7 @@ SAMPLERS = ("sphere_inv", "hemi_inv", "hemi_rej", "hemi_rej_plus")
 #: direction ∝ cos inside it) or the paper's loop of ``uniform`` proposals (see :mod:`guiding.guides.grid.samplers`).
 PROPOSALS = ("bins", "uniform")
 #: Least BSDF share of the rejection samplers (see :mod:`guiding.guides.grid.samplers`): it bounds hemi_rej's weight by 5·ρ
-#: per bounce (measured at door-ajar's vertices, results/bounce_weights.md: second moment 1.6·ρ², against 1.8 at 0.1
-#: and 1.9 at 0.05). At 0.1 (10·ρ) the products of several such bounces were still heavy-tailed: on door-ajar one of
-#: 24 passes of sarsa-hemi_rej came out at 2.4× the mean, doubling the pass means' standard error.
+#: per bounce. A smaller share leaves the products of several bounces heavy-tailed (results/bounce_weights.md).
 MIN_BSDF_SHARE = 0.2
 #: The range of a BSDF share the tree guides learn (``learn_bsdf_fraction``; :mod:`~guiding.guides.trees.bsdf_fraction`):
 #: the floor is the grid's ``min_bsdf_share``, for the same bound on the weights.
@@ -47,7 +45,7 @@ PAPER_SPP_UNIT = 4
 
 #: Floor of the exploration share ε of the grid policy. The paper's schedule alone drives ε to 1e-10 by 1000 spp;
 #: unexplored bins then get probabilities below float32 resolution in the tables, are never sampled, and the image is
-#: biased (measured: −20 % image mean on `cornell` with hemi_inv). With the floor every bin keeps ≥ ε_min/B.
+#: biased (docs/history.md). With the floor every bin keeps ≥ ε_min/B.
 MIN_EXPLORATION = 0.1
 
 
