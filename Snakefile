@@ -154,7 +154,7 @@ rule render:
 
 # Timed renders (equal time, convergence) never share the machine: they take every core Snakemake was given (so
 # no other local job runs beside them) and the resource `timing` (give --resources timing=1 to serialise them
-# across executors too; the SLURM profile also asks for an exclusive node).
+# across executors too; the SLURM profile does, and asks for an exclusive node).
 rule render_timed:
     input:
         scene=lambda wc: PLAN.scene_file(wc.scene),

@@ -6,13 +6,26 @@ must not depend on it, and CI-like checks run the suite with 1 and with 2.
 """
 
 import os
+import time
 
 import pytest
 
 from guiding.backend import set_variant
+from workflow_runs import CI_CONFIG, snakemake
 
 THREADS = int(os.environ.get("GUIDING_TEST_THREADS", "2"))
 VARIANT = set_variant("llvm_ad_rgb", threads=THREADS)
+
+
+@pytest.fixture(scope="session")
+def ci_run(tmp_path_factory):
+    """One local run of `snakemake --cores 2 --configfile config/ci.yaml` in a temporary working directory, shared by
+    the harness's end-to-end tests and the SLURM run they compare with: (working directory, seconds)."""
+    workdir = tmp_path_factory.mktemp("ci-run")
+    start = time.perf_counter()
+    result = snakemake("--cores", 2, "--configfile", CI_CONFIG, "--directory", workdir)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    return workdir, time.perf_counter() - start
 
 
 @pytest.fixture(scope="session")

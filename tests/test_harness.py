@@ -13,7 +13,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -25,16 +24,9 @@ from guiding import imageio
 from guiding.experiments import figures, harness
 from guiding.experiments.configuration import ConfigError, load_config
 from guiding.experiments.plan import plan
+from workflow_runs import CI_CONFIG, ROOT, checkout_env, snakemake, snakemake_command
 
-ROOT = Path(__file__).resolve().parent.parent
-ROOT = Path(__file__).resolve().parent.parent
-CI_CONFIG = ROOT / "config" / "ci.yaml"
 FULL_CONFIG = ROOT / "config" / "config.yaml"
-
-
-def snakemake(*args, cwd=ROOT, timeout=300, **kwargs) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), *map(str, args)],
-                          cwd=cwd, capture_output=True, text=True, timeout=timeout, **kwargs)
 
 
 def job_counts(output: str) -> dict[str, int]:
@@ -203,15 +195,6 @@ def test_harness_path_command(capsys):
 
 
 # ------------------------------------------------------------------------------- the workflow, end to end
-
-@pytest.fixture(scope="module")
-def ci_run(tmp_path_factory):
-    workdir = tmp_path_factory.mktemp("ci-run")
-    start = time.perf_counter()
-    result = snakemake("--cores", 2, "--configfile", CI_CONFIG, "--directory", workdir)
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    return workdir, time.perf_counter() - start
-
 
 def _finite(frame: pd.DataFrame, column: str) -> bool:
     return bool(np.isfinite(frame[column].astype(float)).all())
@@ -393,7 +376,7 @@ def test_full_config_and_slurm_profile_dry_run(tmp_path):
     assert counts["render_timed"] == sum(r.timed for r in the_plan.runs) > 0
     assert counts["evaluate"] == len(the_plan.runs) and counts["reference"] == len(the_plan.references)
     assert counts["table"] == len(the_plan.experiments()) and counts["figure_heatmap"] == 1
-    # The SLURM profile: resources and config overrides resolve (the executor plugin itself is not installed here).
+    # The SLURM profile: resources and config overrides resolve (tests/test_slurm.py runs it on SLURM).
     result = snakemake("-n", "--profile", ROOT / "config" / "profiles" / "slurm", "--executor", "local",
                        "--directory", tmp_path)
     assert result.returncode == 0, result.stderr[-2000:]
@@ -438,10 +421,9 @@ def test_interrupted_render_leaves_no_output_a_rerun_would_trust(tmp_path, victi
     (tmp_path / "long.yaml").write_text(yaml.safe_dump(config))
     folder = tmp_path / "results/ci/renders/equal_time/cornell/brdf/120s/seed0"
     target = "results/ci/renders/equal_time/cornell/brdf/120s/seed0/stats.json"
-    args = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "--cores", "1", "--configfile",
-            str(tmp_path / "long.yaml"), "--directory", str(tmp_path), target]
+    args = snakemake_command("--cores", 1, "--configfile", tmp_path / "long.yaml", "--directory", tmp_path, target)
     process = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                               start_new_session=True)
+                               start_new_session=True, env=checkout_env())
     try:
         deadline = time.time() + 60
         while not (pids := _render_processes(process.pid)) and time.time() < deadline:

@@ -52,9 +52,11 @@ def test_parametrised(case, figures):
 
 @pytest.fixture
 def stress_suite(pytester):
-    """A copy of the test layout: the two conftest files and ``stress/test_example.py``."""
+    """A copy of the test layout: the two conftest files (and the helper module the top one imports) and
+    ``stress/test_example.py``."""
     pytester.makeini("[pytest]\n")
     pytester.makeconftest((TESTS / "conftest.py").read_text())
+    pytester.makepyfile(workflow_runs=(TESTS / "workflow_runs.py").read_text())
     stress = pytester.mkdir("stress")
     (stress / "conftest.py").write_text((TESTS / "stress" / "conftest.py").read_text())
     (stress / "test_example.py").write_text(EXAMPLE_GROUP)
