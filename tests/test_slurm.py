@@ -25,7 +25,9 @@ from types import SimpleNamespace
 import pytest
 import yaml
 
-from guiding import harness, imageio
+from guiding import imageio
+from guiding.experiments.configuration import load_config
+from guiding.experiments.plan import plan
 from workflow_runs import CI_CONFIG, ROOT, checkout_env, snakemake, snakemake_command
 
 SCRIPT = ROOT / "scripts" / "slurm.sh"
@@ -126,12 +128,12 @@ def test_slurm_run_makes_what_a_local_run_makes(slurm_run, ci_run):
 
 
 def test_only_references_and_renders_go_to_slurm_with_the_profiles_resources(slurm_run):
-    plan = harness.plan(harness.load_config(CI_CONFIG))
+    the_plan = plan(load_config(CI_CONFIG))
     profile = slurm_run.profile
     stats_files = {_comment("render_timed" if run.timed else "render", run.experiment, run.scene, run.method,
-                            run.budget.tag, run.seed): plan.render_file(run, "stats.json") for run in plan.runs}
-    stats_files.update({_comment("reference", ref.scene, ref.scale, ref.spp): plan.reference_file(ref, "stats.json")
-                        for ref in plan.references.values()})
+                            run.budget.tag, run.seed): the_plan.render_file(run, "stats.json") for run in the_plan.runs}
+    stats_files.update({_comment("reference", ref.scene, ref.scale, ref.spp): the_plan.reference_file(ref, "stats.json")
+                        for ref in the_plan.references.values()})
     assert set(slurm_run.jobs) == set(stats_files)   # metrics, tables, figures, provenance: on this machine
     defaults, rules = profile["default-resources"], profile["set-resources"]
     for comment, job in slurm_run.jobs.items():
@@ -147,19 +149,19 @@ def test_only_references_and_renders_go_to_slurm_with_the_profiles_resources(slu
         # The threads a render used are the CPUs its job was given: config threads, or the timed renders'.
         stats = json.loads((slurm_run.workdir / stats_files[comment]).read_text())
         assert int(job["NumCPUs"]) == stats["provenance"]["threads"] == (
-            slurm_run.node.cpus if rule == "render_timed" else plan.config["threads"]), comment
+            slurm_run.node.cpus if rule == "render_timed" else the_plan.config["threads"]), comment
 
 
 def test_timed_renders_never_overlap(slurm_run):
     """From the renders' own clocks (stats.json started, finished), and from SLURM's: Snakemake submitted each timed
     render only after the one before had ended (the profile's timing=1), which --exclusive alone would not do on a
     cluster of more than one node."""
-    plan = harness.plan(harness.load_config(CI_CONFIG))
-    timed = [run for run in plan.runs if run.timed]
+    the_plan = plan(load_config(CI_CONFIG))
+    timed = [run for run in the_plan.runs if run.timed]
     assert len(timed) > 1
     spans = sorted((datetime.fromisoformat(stats["started"]), datetime.fromisoformat(stats["finished"]), run.key)
                    for run in timed
-                   for stats in [json.loads((slurm_run.workdir / plan.render_file(run, "stats.json")).read_text())])
+                   for stats in [json.loads((slurm_run.workdir / the_plan.render_file(run, "stats.json")).read_text())])
     for before, after in zip(spans, spans[1:]):
         assert after[0] >= before[1], f"{after[2]} started before {before[2]} finished"
     jobs = sorted((job for comment, job in slurm_run.jobs.items() if comment.startswith("rule_render_timed_")),
@@ -204,7 +206,7 @@ def test_a_render_cancelled_by_scancel_leaves_nothing_and_is_rerun(slurm, tmp_pa
     """scancel a timed render mid-way, first under a live Snakemake (which reports the cancelled job), then after
     Snakemake itself was killed (a lost login session: nobody cleans up). Neither leaves anything in the render's
     folder, and the same command renders it again, whole (after --unlock, for the killed Snakemake's lock)."""
-    config = harness.load_config(CI_CONFIG)
+    config = load_config(CI_CONFIG)
     config["budgets"]["equal_time"]["seconds"] = 8
     (tmp_path / "long.yaml").write_text(yaml.safe_dump(config))
     cluster_profile(tmp_path / "profile", slurm)
