@@ -141,3 +141,15 @@ def test_nee_without_emitters_says_so_in_one_line():
                           "floor": {"type": "rectangle", "bsdf": WHITE}})
     with pytest.raises(GuidingError, match="has none"):
         _nee_integrator("brdf").prepare(scene)
+
+
+def test_the_plugin_takes_nee_from_xml_and_load_dict():
+    import guiding  # noqa: F401  (registers guided_path for the variant the tests set)
+
+    from_dict = mi.load_dict({"type": "guided_path", "method": "ours", "nee": True, "learn_nee_light": False})
+    from_xml = mi.load_string('<integrator version="3.0.0" type="guided_path"><string name="method" value="ours"/>'
+                              '<boolean name="nee" value="true"/></integrator>')
+    default = mi.load_dict({"type": "guided_path"})
+    assert (from_dict.nee, from_dict.learn_nee_light) == (True, False)
+    assert (from_xml.nee, from_xml.learn_nee_light) == (True, True)
+    assert not default.nee and "nee=True" in from_xml.to_string()
