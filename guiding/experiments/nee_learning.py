@@ -51,9 +51,11 @@ def measure(scenes=SCENES, methods=METHODS, seeds=SEEDS, spp: int = SPP, referen
 
 
 def summary(frame: pd.DataFrame) -> pd.DataFrame:
-    """Mean MAE per scene and method for both choices, and their ratio (< 1: learning only NEE's remainder wins)."""
-    table = frame.pivot_table(index=["scene", "method"], columns="learn_nee_light", values="mae", aggfunc="mean")
-    table = table.rename(columns={True: "mae_full_radiance", False: "mae_nee_remainder"})
+    """Mean MAE (and its standard deviation over the seeds) per scene and method for both choices, and the ratio of
+    the means (< 1: learning only NEE's remainder wins)."""
+    table = frame.pivot_table(index=["scene", "method"], columns="learn_nee_light", values="mae", aggfunc=["mean", "std"])
+    table.columns = [f"{'mae' if stat == 'mean' else 'mae_std'}_{'full_radiance' if full else 'nee_remainder'}"
+                     for stat, full in table.columns]
     table["remainder_over_full"] = table["mae_nee_remainder"] / table["mae_full_radiance"]
     return table.reset_index()
 
