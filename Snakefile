@@ -1,7 +1,7 @@
 """The experiment DAG: references -> renders -> metrics -> tables, figures, provenance (docs/harness.md).
 
-Thin on purpose: guiding/harness.py expands the configuration into runs and paths, `python -m guiding` renders,
-guiding/tables.py and guiding/figures.py draw. Without --configfile, config/config.yaml is used (for --report: the
+Thin on purpose: guiding/experiments/plan.py expands the configuration into runs and paths, `python -m guiding`
+renders, guiding/experiments/tables.py and figures.py draw. Without --configfile, config/config.yaml is used (for --report: the
 configuration of the last completed run); a --configfile replaces it (no merging), --config KEY=VALUE overrides
 single keys.
 """
@@ -13,6 +13,8 @@ import sys
 from snakemake.exceptions import WorkflowError
 
 from guiding.experiments import harness
+from guiding.experiments.plan import BUDGET_PATTERN, NAME_PATTERN, plan_or_exit
+from guiding.experiments.runs import EXPERIMENTS
 
 if not workflow.config_settings.configfiles:
     # A report describes a run: without --configfile, the one that last completed here (onsuccess below).
@@ -25,7 +27,7 @@ if not workflow.config_settings.configfiles:
         configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
-PLAN = harness.plan_or_exit(
+PLAN = plan_or_exit(
     config,
     schema=os.path.join(workflow.basedir, "config", "schema.yaml"),
     check=not workflow.remote_exec,
@@ -74,13 +76,13 @@ report: "docs/report/workflow.rst"
 
 
 wildcard_constraints:
-    scene=harness.NAME_PATTERN,
-    method=harness.NAME_PATTERN,
-    budget=harness.BUDGET_PATTERN,
+    scene=NAME_PATTERN,
+    method=NAME_PATTERN,
+    budget=BUDGET_PATTERN,
     seed=r"[0-9]+",
     scale=r"[0-9]+(\.[0-9]+)?",
     spp=r"[0-9]+",
-    experiment="|".join(harness.EXPERIMENTS),
+    experiment="|".join(EXPERIMENTS),
 
 
 localrules:

@@ -82,7 +82,7 @@ def load_scene(name: str, scale: float = 1.0, extra_dirs: Iterable[str | os.Path
     path = find_scene(name, extra_dirs)
     resx, resy = scaled_resolution(path, scale)
     # Mitsuba's loader runs nested parallel tasks on Dr.Jit's thread pool, and with a single worker it deadlocks
-    # (measured: living-room with --threads 1 never finished loading). Loading is untimed, so it gets two.
+    # (living-room with --threads 1 never finished loading). Loading is untimed, so it gets two.
     threads = dr.thread_count()
     try:
         dr.set_thread_count(max(threads, 2))

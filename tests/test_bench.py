@@ -7,6 +7,7 @@ import pytest
 from guiding.bench.benchmark import (GRID_STAGES, OUTSIDE_SEQUENCE, TRACE_ONLY, TREE_STAGES, PassTiming, _guided_per_ray,
                            benchmark, breakdown_variants, interleaved_passes, paired_quartiles, target_table)
 from guiding.bench.child import child_failure
+from guiding.bench.instruments import HotRowsStage, instrumented_guide
 from guiding.bench.cpu_profile import parse_report, profile_table, table_access_share
 from guiding.errors import GuidingError
 from guiding.bench.kernel_size import kernel_table, parse_disassembly
@@ -44,7 +45,26 @@ def test_hot_rows_stage_only_where_a_drawn_bin_is_tried_by_rejection():
                                                                "ours-uniform-proposals"))
     for method in ("sarsa-hemi_inv", "ours-uniform-proposals"):
         with pytest.raises(ValueError, match="bins proposal"):
-            make_guide(method, profile_stage="hot_rows")
+            instrumented_guide(method, HotRowsStage)
+
+
+def _trained_on_two_pairs(guide):
+    """``guide`` trained on one cell's random Q with two visited pairs of different normals: two rows of different
+    distributions (the same tables for every guide of the same resolution)."""
+    import drjit as dr
+    import mitsuba as mi
+    import numpy as np
+
+    table = guide.record_table
+    table.set_bounds(mi.BoundingBox3f(mi.ScalarPoint3f(0), mi.ScalarPoint3f(1)))
+    B = table.bins.count
+    q = np.zeros(table.cells * B)
+    q[:B] = np.random.default_rng(5).uniform(0, 10, B)
+    table.acc_sum, table.acc_count = mi.Float64(q), mi.Float64(np.ones_like(q))
+    pairs = table.pair(mi.UInt32(0, 0), mi.Vector3f([0, 0], [0, 1], [1, 0]))
+    dr.scatter(table.visited, mi.UInt32(1), pairs)
+    guide.update(spp_done=150)
+    return pairs
 
 
 def test_hot_rows_instrument_draws_and_looks_up_in_the_first_row():
@@ -55,38 +75,35 @@ def test_hot_rows_instrument_draws_and_looks_up_in_the_first_row():
     import mitsuba as mi
     import numpy as np
 
-    from guiding.guides.grid.guide import GridGuide, _Vertex
+    from guiding.guides.grid.guide import GridGuide
+    from guiding.guides.grid.vertex import SamplerVertex
 
-    guides = {stage: GridGuide(spatial_resolution=2, directional_resolution=4, rule="sarsa", sampler="hemi_rej_plus",
-                               proposal="bins", profile_stage=stage) for stage in (None, "hot_rows")}
+    parameters = dict(spatial_resolution=2, directional_resolution=4, rule="sarsa", sampler="hemi_rej_plus",
+                      proposal="bins")
+    guides = {stage: kind(**parameters) for stage, kind in ((None, GridGuide), ("hot_rows", HotRowsStage))}
+    pairs = {stage: _trained_on_two_pairs(guide) for stage, guide in guides.items()}
     table = guides[None].record_table
-    table.set_bounds(mi.BoundingBox3f(mi.ScalarPoint3f(0), mi.ScalarPoint3f(1)))
-    B = table.bins.count
-    q = np.zeros(table.cells * B)
-    q[:B] = np.random.default_rng(5).uniform(0, 10, B)
-    table.acc_sum, table.acc_count = mi.Float64(q), mi.Float64(np.ones_like(q))
-    pairs = table.pair(mi.UInt32(0, 0), mi.Vector3f([0, 0], [0, 1], [1, 0]))
-    dr.scatter(table.visited, mi.UInt32(1), pairs)
-    guides[None].update(spp_done=150)
-    guides["hot_rows"].record_table = table
+    np.testing.assert_array_equal(table.hemi_alias, guides["hot_rows"].record_table.hemi_alias)
 
     lanes = 4096
-    second = int(np.argmax(np.array(table.memo(pairs, True).row)))      # the pair whose row is not the first
-    pair = dr.gather(mi.UInt32, pairs, dr.full(mi.UInt32, second, lanes))
+    second = int(np.argmax(np.array(table.memo(pairs[None], True).row)))      # the pair whose row is not the first
+    pair = dr.gather(mi.UInt32, pairs[None], dr.full(mi.UInt32, second, lanes))
     memo = table.memo(pair, True)
     assert np.all(np.array(memo.row) == 1)
-    vertex = _Vertex(guided=mi.Bool(True), cell=mi.UInt32(0), side=mi.Float(1), pair=pair, memo=memo,
-                     centre=table.normal_centre(pair))
-    k = dr.arange(mi.UInt32, lanes) % B
+    k = dr.arange(mi.UInt32, lanes) % table.bins.count
     drawn = {}
     for stage, guide in guides.items():
         row = mi.UInt32(0) if stage else memo.row
-        np.testing.assert_array_equal(guide._bin_density(vertex, k, True), table.hemi_density(pair, row, k, True))
+        vertex = SamplerVertex(guided=mi.Bool(True), cell=mi.UInt32(0), side=mi.Float(1), pair=pair, memo=memo,
+                               centre=table.normal_centre(pair))
+        vertex.row = guide._pair_row(vertex)
+        np.testing.assert_array_equal(guide.sampler.bin_density(vertex, k, True),
+                                      table.hemi_density(pair, row, k, True))
         sampler = mi.load_dict({"type": "independent"})
         sampler.seed(1, lanes)
-        _, bins, density, _ = guide._sample_rejection(sampler, vertex, mi.Bool(True))
-        np.testing.assert_array_equal(density, table.hemi_density(pair, row, bins, True))
-        drawn[stage] = np.array(bins)
+        draw = guide.sampler.proposal.draw(sampler, vertex, mi.Bool(True))
+        np.testing.assert_array_equal(draw.density, table.hemi_density(pair, row, draw.bin, True))
+        drawn[stage] = np.array(draw.bin)
     assert not np.array_equal(table.hemi_density(pair, 0, k, True), table.hemi_density(pair, 1, k, True))
     assert not np.array_equal(drawn[None], drawn["hot_rows"])
 

@@ -33,7 +33,9 @@ def _vertices(scene_name):
 def weight_bound(guide) -> float:
     """The largest single-bounce weight over the albedo that the guide's defensive share allows."""
     if isinstance(guide, GridGuide):
-        return 1 / (guide.min_bsdf_share if guide.sampler.startswith("hemi_rej") else guide.bsdf_fraction)
+        parameters = guide.parameters
+        return 1 / (parameters.min_bsdf_share if parameters.sampler.startswith("hemi_rej")
+                    else parameters.bsdf_fraction)
     return 1 / getattr(guide, "bsdf_fraction", 1.0)
 
 

@@ -78,6 +78,21 @@ def test_render_exr_carries_what_made_it(tmp_path):
     assert snapshot["spp"] == 8 and snapshot["method"] == "ours-S4-D8"
 
 
+def test_set_is_the_shorthand_bit_for_bit(tmp_path):
+    """`--method ours --set spatial_resolution=4` is `--method ours-S4`: the same guide, the same image to the bit,
+    and the same method label in what the render writes."""
+    images, labels = [], []
+    for name, method in (("shorthand", ["ours-S4"]), ("set", ["ours", "--set", "spatial_resolution=4"])):
+        out = tmp_path / name
+        assert main(["render", "--scene", "cornell", "--scale", "0.1", "--method", *method, "--spp", "16",
+                     "--seed", "3", "--out", str(out), "--quiet"]) == 0
+        images.append(imageio.read_exr(out / "image.exr"))
+        stats = strict_load(out / "stats.json")
+        labels.append((stats["method"], stats["guide"]["S"], stats["guide"]["D"]))
+    assert np.array_equal(images[0], images[1]) and images[0].std() > 0
+    assert labels == [("ours-S4", 4, 16)] * 2
+
+
 def test_reference_writes_outputs_and_strict_json(tmp_path):
     out = tmp_path / "ref"
     assert main(["reference", "--scene", "cornell", "--scale", "0.05", "--spp", "16", "--out", str(out),
@@ -93,6 +108,16 @@ def test_reference_writes_outputs_and_strict_json(tmp_path):
     (["--scene", "cornell", "--method", "brdf", "--spp", "0"], "must be > 0"),
     (["--scene", "cornell", "--method", "brdf", "--seconds", "-2"], "must be > 0"),
     (["--scene", "cornell", "--method", "brdf"], "required"),
+    (["--scene", "cornell", "--method", "ours", "--set", "spatial_res=4", "--spp", "8"],
+     "method 'ours' has no parameter 'spatial_res' (its parameters: spatial_resolution, "),
+    (["--scene", "cornell", "--method", "ours", "--set", "spatial_resolution=four", "--spp", "8"],
+     "method 'ours': spatial_resolution='four' is not an integer"),
+    (["--scene", "cornell", "--method", "ours", "--set", "spatial_resolution=0", "--spp", "8"],
+     "method 'ours' with spatial_resolution=0: S and D must be in 1..256"),
+    (["--scene", "cornell", "--method", "ours", "--set", "statistics", "--spp", "8"],
+     "--set expects FIELD=VALUE, got 'statistics'"),
+    (["--scene", "cornell", "--method", "brdf", "--set", "bsdf_fraction=0.5", "--spp", "8"],
+     "method 'brdf' takes no parameters, got bsdf_fraction"),
 ])
 def test_bad_render_input(tmp_path, capsys, args, message):
     out = tmp_path / "out"

@@ -182,12 +182,12 @@ def test_statistics_counters_only_when_asked_for(cornell):
         guide.prepare(cornell)
         for index in range(2):
             render_pass(cornell, integrator, 0, index, 2)
-            assert not statistics or guide.counters
+            assert not statistics or guide.counters.arrays
             stats = guide.update(2 * (index + 1)).stats
         counted = {"guided_samples", "invalid_share", "acceptance_rate", "proposals_per_sample"} & set(stats)
         assert counted == (set() if not statistics else {"guided_samples", "invalid_share", "acceptance_rate",
                                                          "proposals_per_sample"}), (statistics, stats)
-        assert (guide.counters == {}) == (not statistics)
+        assert (guide.counters.arrays == {}) == (not statistics)
         if statistics:
             assert stats["guided_samples"] > 0
 

@@ -30,6 +30,14 @@ def test_mi_render_trains_the_guide_like_the_renderer():
     assert mae_tonemapped(image[..., :3], reference) < mae_tonemapped(np.asarray(brdf)[..., :3], reference)
 
 
+def test_plugin_resolves_its_method_once_with_the_shorthand():
+    """The plugin's `method` is a name (XML, load_dict), resolved into the method's guide in its constructor."""
+    plugin = mi.load_dict({"type": "guided_path", "method": "ours-S4-D8", "statistics": True})
+    parameters = plugin.guide.parameters
+    assert (parameters.spatial_resolution, parameters.directional_resolution, parameters.statistics) == (4, 8, True)
+    assert parameters == make_guide("ours", spatial_resolution=4, directional_resolution=8, statistics=True).parameters
+
+
 def test_xml_integrator_trains_under_mi_render():
     scene = mi.load_string("""
     <scene version="3.0.0">

@@ -19,9 +19,9 @@ vertex's directions from one distribution changes (results/bench/README.md, "The
 ``rays_per_path`` shows how far its paths are from the method's, and a missed target's bottleneck gives the change
 per ray too).
 Tree guides: ``[no record]`` (the method's own trees, as they
-are at each pass, sampled by a kernel that records nothing) and ``[+record]``. The partial stages are a benchmark
-instrument (``GridParameters.profile_stage``): their images are not meant to be correct, and they learn their
-tables only in the warm-up passes.
+are at each pass, sampled by a kernel that records nothing) and ``[+record]``. The partial stages are the
+benchmark's instruments (:mod:`guiding.bench.instruments`): their images are not meant to be correct, and they learn
+their tables only in the warm-up passes.
 """
 
 from __future__ import annotations
@@ -36,8 +36,11 @@ import mitsuba as mi
 import numpy as np
 import pandas as pd
 
+from guiding.bench.instruments import (BsdfPathsStage, ClassifyStage, HotRowsStage, PdfStage, SampleStage,
+                                       SamplingOnly, instrumented_guide)
+from guiding.guides.methods import grid_parameters, make_guide
+from guiding.render.defaults import MAX_DEPTH, PASS_SPP
 from guiding.render.driver import PassDriver, pass_seed
-from guiding.guides.base import NoPathState, UpdateResult
 
 
 @dataclass
@@ -65,7 +68,7 @@ def _timed_pass(driver: PassDriver, spp: int, seed: int) -> PassTiming:
                       rays=outcome.rays, guided=stats.get("guided_samples"), memo_pairs=stats.get("memo_pairs", 0))
 
 
-def interleaved_passes(scene: mi.Scene, integrators: dict[str, object], passes: int = 12, pass_spp: int = 8,
+def interleaved_passes(scene: mi.Scene, integrators: dict[str, object], passes: int = 12, pass_spp: int = PASS_SPP,
                        warmup: int = 2, before_pass=None) -> dict[str, list[PassTiming]]:
     """``warmup + passes`` passes of every integrator, interleaved (A, B, A, B, …) so that machine noise hits
     them alike; returns the timed passes (warm-up passes dropped, except that compile time of every pass is
@@ -88,20 +91,33 @@ def interleaved_passes(scene: mi.Scene, integrators: dict[str, object], passes: 
 
 
 TRACE_ONLY = "trace-only"
-#: Grid guides' breakdown: (stage, the variant's name suffix, make_guide overrides; None: the method itself).
-GRID_STAGES = [("classify", "[classify]", {"profile_stage": "classify"}),
-               ("+sample", "[+sample]", {"profile_stage": "sample"}),
-               ("+pdf", "[+pdf]", {"profile_stage": "pdf"}),
+
+
+def _instrument(instrument):
+    """The breakdown stage of one of :mod:`guiding.bench.instruments`' grid guides: the instrumented guide of a method
+    (None where the instrument does not apply to it)."""
+    def build(method: str, guide):
+        return instrumented_guide(method, instrument) if instrument.applies_to(grid_parameters(method)) else None
+    return build
+
+
+#: Grid guides' breakdown: (stage, the variant's name suffix, what builds the variant's guide from the method's name
+#: and its own guide; None: the method itself).
+GRID_STAGES = [("classify", "[classify]", _instrument(ClassifyStage)),
+               ("+sample", "[+sample]", _instrument(SampleStage)),
+               ("+pdf", "[+pdf]", _instrument(PdfStage)),
                ("+record", "", None),
-               ("+statistics", "[+statistics]", {"statistics": True}),
-               ("bsdf paths", "[bsdf paths]", {"profile_stage": "bsdf_paths"}),
-               ("hot rows", "[hot rows]", {"profile_stage": "hot_rows"})]
+               ("+statistics", "[+statistics]", lambda method, guide: make_guide(method, statistics=True)),
+               ("bsdf paths", "[bsdf paths]", _instrument(BsdfPathsStage)),
+               # Only where a drawn bin's direction is tried by rejection: another row's bins taken without rejection
+               # lie below the surface, and shorten the paths.
+               ("hot rows", "[hot rows]", _instrument(HotRowsStage))]
 #: Stages that are not a step of the sequence: their increment is over the method itself (for ``bsdf paths``, minus
 #: what the guided paths themselves cost; for ``hot rows``, minus what the alias rows' cache misses and the paths'
 #: own directions cost).
 OUTSIDE_SEQUENCE = {"bsdf paths", "hot rows"}
 #: Tree guides' breakdown: the method's trees sampled without recording, then the guide itself.
-TREE_STAGES = [("no record", "[no record]", "view"), ("+record", "", None)]
+TREE_STAGES = [("no record", "[no record]", lambda method, guide: SamplingOnly(guide)), ("+record", "", None)]
 
 
 class TraceOnlyIntegrator(mi.SamplingIntegrator):
@@ -136,68 +152,28 @@ class TraceOnlyIntegrator(mi.SamplingIntegrator):
         return mi.Spectrum(hits / self.max_depth), mi.Bool(True), []
 
 
-class _SamplingOnly:
-    """The guide of another integrator, sampled as it stands, recording and learning nothing (the benchmark's tree
-    ``[no record]`` stage): the same trees as the method's own passes at every pass (a guide of its own that stopped
-    recording would keep the coarse trees of the warm-up passes, and the increment of recording would include the
-    cost of the finer trees). Its passes must follow the method's (prepared after it, interleaved after it)."""
-
-    def __init__(self, guide):
-        self._guide = guide
-
-    def __getattr__(self, name):
-        return getattr(self._guide, name)
-
-    def records(self) -> bool:
-        return False
-
-    def trace_key(self) -> tuple:
-        return ("sampling only", *self._guide.trace_key())
-
-    def prepare(self, scene: mi.Scene) -> None:
-        """Nothing: the method's integrator prepared the guide."""
-
-    def new_paths(self, size: int, max_depth: int):
-        return NoPathState()
-
-    def update_due(self, spp_done: int) -> None:
-        return None
-
-    def update(self, spp_done: int) -> UpdateResult:
-        return UpdateResult({})
-
-
 def breakdown_variants(method: str, guide) -> list[tuple[str, str, object]]:
     """The breakdown of ``method`` whose own integrator has ``guide``: (stage, integrator name, guide or None for the
     method's own integrator)."""
-    from guiding.guides.parameters import draws_bins_by_rejection
-    from guiding.guides.methods import grid_parameters, make_guide
-
     if method == "brdf":
         return []
     variants = []
-    parameters = grid_parameters(method)
-    for stage, suffix, overrides in (GRID_STAGES if parameters is not None else TREE_STAGES):
-        if stage == "hot rows" and not draws_bins_by_rejection(parameters.sampler, parameters.proposal):
-            continue          # another row's bins, taken without rejection, lie below the surface: shorter paths
-        if overrides is None:
+    for stage, suffix, build in (GRID_STAGES if grid_parameters(method) is not None else TREE_STAGES):
+        if build is None:
             variants.append((stage, method, None))
-        elif overrides == "view":
-            variants.append((stage, method + suffix, _SamplingOnly(guide)))
-        else:
-            variants.append((stage, method + suffix, make_guide(method, **overrides)))
+        elif (variant := build(method, guide)) is not None:
+            variants.append((stage, method + suffix, variant))
     return variants
 
 
-def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int = 12, pass_spp: int = 8,
-              max_depth: int = 16, breakdown: bool = True) -> tuple[pd.DataFrame, pd.DataFrame]:
+def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int = 12, pass_spp: int = PASS_SPP,
+              max_depth: int = MAX_DEPTH, breakdown: bool = True) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Per scene and method: kernel time per spp (also as ratios to ``brdf`` and Mitsuba ``path`` timed in the
     same run), Python tracing per pass, compile time, guide update share, memory, hit rate, rays per second (and as
     a fraction of the ``trace-only`` kernel's), and what the guide skips: the share of vertices it guides and the
     memoised (cell, normal bin) pairs. With ``breakdown``, the cost breakdown of every guided method (timed in the
     same interleaved run; see the module's docstring): returns (benchmark table, breakdown table)."""
     from guiding.render.integrator import GuidedPathIntegrator
-    from guiding.guides.methods import make_guide
     from guiding.scenes import load_scene
 
     rows, breakdown_rows = [], []
@@ -294,14 +270,13 @@ PASS_MODES = {"fixed": (False, False), "growing": (True, False), "frozen": (True
 
 
 def pass_schedule_table(scenes: list[tuple[str, float]], methods: list[str], spp: int = 512, rounds: int = 2,
-                        max_depth: int = 16) -> pd.DataFrame:
+                        max_depth: int = MAX_DEPTH) -> pd.DataFrame:
     """Per scene and method: the counted seconds (render and update, compilation excluded) of a render of ``spp``
     spp in each of the :data:`PASS_MODES`, the renders alternating, ``rounds`` times (medians); the speed-up of each
     mode over the one before, and each mode's cost per spp over ``brdf``'s in the same mode (what decides an
     equal-time comparison). The fixed and the frozen passes' costs split into the kernels' execution, the guide's
     updates and the rest of each pass (tracing the loop in Python, launching, synchronising)."""
     from guiding.render.integrator import GuidedPathIntegrator
-    from guiding.guides.methods import make_guide
     from guiding.render.progressive import Budget, render
     from guiding.scenes import load_scene
 

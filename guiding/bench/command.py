@@ -3,6 +3,9 @@ fixed against growing passes, kernel sizes, CPU profile)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
+
 from guiding.errors import GuidingError
 from guiding.output_dirs import prepare_output_dir
 from guiding.provenance import device_name
@@ -41,12 +44,123 @@ def parse_scene_list(text: str) -> list[tuple[str, float]]:
     return pairs
 
 
+@dataclass(frozen=True)
+class _BenchRun:
+    """What every part of ``bench`` works with: the scenes and methods (as given, and parsed), the output folder, the
+    device, and the options that change what the renders run on, as given (for the tables' command lines)."""
+
+    args: object
+    scenes: list
+    methods: list
+    out: Path
+    variant: str
+    device: str
+
+    @property
+    def backend_options(self) -> str:
+        args = self.args
+        return ((f" --variant {args.variant}" if args.variant != "auto" else "")
+                + (f" --threads {args.threads}" if args.threads else ""))
+
+    def command(self, part: str, passes: bool = True) -> str:
+        """The ``bench`` command line that makes a part's table."""
+        args = self.args
+        return (f"python -m guiding bench{f' --part {part}' if part != 'cost' else ''} --scenes {args.scenes} "
+                f"--methods {args.methods}" + (f" --passes {args.passes}" if passes else ""))
+
+
+def _kernel_size(run: _BenchRun) -> None:
+    from guiding.bench.benchmark import write_table
+    from guiding.bench.kernel_size import kernel_table
+
+    frame = kernel_table(run.scenes, run.methods)
+    write_table(frame, run.out / "kernel_instructions", "Machine instructions of each method's render kernel (the "
+                "largest module compiled in its first passes; see guiding/kernel_size.py)", run.device,
+                run.command("kernel-size", passes=False))
+    print(frame.to_string(index=False))
+
+
+def _profile(run: _BenchRun) -> None:
+    from guiding.bench.benchmark import write_table
+    from guiding.bench.cpu_profile import PASS_SPP, WARMUP_PASSES, profile_table
+
+    passes = run.args.passes
+    frame = profile_table(run.scenes, run.methods, passes)
+    write_table(frame, run.out / "profile_cpu", f"CPU time per spp by code, sampled by Linux perf ({passes} "
+                f"passes of {PASS_SPP} spp after {WARMUP_PASSES} warm-up passes, llvm_ad_rgb on one Dr.Jit "
+                "thread; `jit_kernels`: the compiled path loop, split into `jit_table_access` (samples at a "
+                "gather, load or store through a computed address, or the instruction after one) and `jit_other`; "
+                "`embree`: ray traversal; see guiding/cpu_profile.py)", run.device, run.command("profile"))
+    print(frame.to_string(index=False))
+
+
+def _gathers(run: _BenchRun) -> None:
+    from guiding.llvm_gathers import gathers_choosable
+    from guiding.bench.benchmark import write_table
+    from guiding.bench.gathers import gathers_table
+
+    if not run.variant.startswith("llvm") or not gathers_choosable():
+        raise GuidingError("bench --part gathers compares two CPU builds, which only a CPU with AVX2 and without "
+                           "AVX-512 has (run it with --variant llvm_ad_rgb there)")
+    passes = run.args.passes
+    frame = gathers_table(run.scenes, run.methods, passes)
+    write_table(frame, run.out / "hardware_gathers", "Table reads compiled into the CPU's gather instruction against "
+                f"LLVM's loop of scalar loads (median kernel time per spp of {passes} interleaved passes of 8 "
+                "spp after 2 warm-up passes, both builds in one run; `speed_up`: scalar-load time over gather "
+                "time; see guiding/gather_bench.py)", device_name(run.variant, reads=False),
+                run.command("gathers") + run.backend_options)
+    print(frame.to_string(index=False))
+
+
+def _pass_schedule(run: _BenchRun) -> None:
+    from guiding.bench.benchmark import pass_schedule_table, write_table
+
+    frame = pass_schedule_table(run.scenes, run.methods)
+    write_table(frame, run.out / f"pass_schedule_{_tag(run.variant)}", "Pass modes: counted seconds of 512-spp "
+                "renders with fixed 8-spp passes, growing passes, and growing frozen passes (render + update, "
+                "compilation excluded; medians of 2 alternating rounds; `speed_up_growing`: fixed over growing, "
+                "`speed_up_frozen`: growing over frozen)", run.device,
+                run.command("pass-schedule", passes=False) + run.backend_options)
+    print(frame.to_string(index=False))
+
+
+def _cost(run: _BenchRun) -> None:
+    from guiding.bench.benchmark import benchmark, target_table, write_table
+
+    args, tag = run.args, _tag(run.variant)
+    frame, breakdown = benchmark(run.scenes, run.methods, passes=args.passes, breakdown=not args.no_breakdown)
+    command = run.command("cost") + run.backend_options + (" --no-breakdown" if args.no_breakdown else "")
+    write_table(frame, run.out / f"benchmark_{tag}", "Cost per spp of every method vs `brdf` and Mitsuba `path` "
+                f"(same run, {args.passes} interleaved passes of 8 spp after 2 warm-up passes, max depth 16; "
+                "`trace-only`: the throughput limit, `share_of_trace_limit`: rays/s as a fraction of its)",
+                run.device, command, sections={"Targets": target_table(frame, tag, breakdown)})
+    if not breakdown.empty:
+        write_table(breakdown, run.out / "cost_breakdown", "Cost breakdown of every guided method: kernel time per "
+                    "spp with the parts of the bounce switched on one by one (same interleaved run as "
+                    f"benchmark_{tag}; `increment`: the stage's cost over the previous stage, the first over `brdf`; "
+                    "partial stages are a benchmark instrument whose images are not meant to be correct)",
+                    run.device, command)
+        print(breakdown.to_string(index=False))
+    print(frame.to_string(index=False))
+
+
+def _tag(variant: str) -> str:
+    return "gpu" if variant.startswith("cuda") else "cpu"
+
+
+#: What each ``--part`` of ``bench`` runs.
+PARTS = {"cost": _cost, "pass-schedule": _pass_schedule, "kernel-size": _kernel_size, "profile": _profile,
+         "gathers": _gathers}
+
+
 def command_bench(args) -> None:
+    """``python -m guiding bench``: the scenes and methods checked (before anything is written), then the part's
+    table under the output folder."""
     from guiding.backend import set_variant
+    from guiding.guides.methods import check_method
     from guiding.scenes import find_scene
 
-    schedule, size, profile = args.part == "pass-schedule", args.part == "kernel-size", args.part == "profile"
-    gathers = args.part == "gathers"
+    schedule, gathers = args.part == "pass-schedule", args.part == "gathers"
     args.scenes = args.scenes or ",".join(DEFAULT_SCENES[args.part])
     args.methods = args.methods or ",".join(PASS_SCHEDULE_METHODS if schedule else GATHERS_METHODS if gathers
                                             else BENCH_METHODS)
@@ -54,82 +168,9 @@ def command_bench(args) -> None:
     scenes = parse_scene_list(args.scenes)
     for name, _ in scenes:
         find_scene(name)
-    from guiding.guides.methods import check_method
-
-    for method in filter(None, args.methods.split(",")):
+    methods = [m for m in args.methods.split(",") if m]
+    for method in methods:
         check_method(method)
     variant = set_variant(args.variant, args.threads)
-    # The options that change what the renders run on, as given (the parts that run children on one CPU thread
-    # take neither).
-    backend_options = ((f" --variant {args.variant}" if args.variant != "auto" else "")
-                       + (f" --threads {args.threads}" if args.threads else ""))
     out = prepare_output_dir(args.out)
-    from guiding.bench.benchmark import benchmark, pass_schedule_table, target_table, write_table
-
-    device = device_name(variant)
-    tag = "gpu" if variant.startswith("cuda") else "cpu"
-    if size:
-        from guiding.bench.kernel_size import kernel_table
-
-        frame = kernel_table(scenes, [m for m in args.methods.split(",") if m])
-        write_table(frame, out / "kernel_instructions", "Machine instructions of each method's render kernel (the "
-                    "largest module compiled in its first passes; see guiding/kernel_size.py)", device,
-                    f"python -m guiding bench --part kernel-size --scenes {args.scenes} --methods {args.methods}")
-        print(frame.to_string(index=False))
-        return
-    if profile:
-        from guiding.bench.cpu_profile import PASS_SPP, WARMUP_PASSES, profile_table
-
-        frame = profile_table(scenes, [m for m in args.methods.split(",") if m], args.passes)
-        write_table(frame, out / "profile_cpu", f"CPU time per spp by code, sampled by Linux perf ({args.passes} "
-                    f"passes of {PASS_SPP} spp after {WARMUP_PASSES} warm-up passes, llvm_ad_rgb on one Dr.Jit "
-                    "thread; `jit_kernels`: the compiled path loop, split into `jit_table_access` (samples at a "
-                    "gather, load or store through a computed address, or the instruction after one) and `jit_other`; "
-                    "`embree`: ray traversal; see guiding/cpu_profile.py)", device,
-                    f"python -m guiding bench --part profile --scenes {args.scenes} --methods {args.methods} "
-                    f"--passes {args.passes}")
-        print(frame.to_string(index=False))
-        return
-    if gathers:
-        from guiding.llvm_gathers import gathers_choosable
-        from guiding.bench.gathers import gathers_table
-
-        if not variant.startswith("llvm") or not gathers_choosable():
-            raise GuidingError("bench --part gathers compares two CPU builds, which only a CPU with AVX2 and without "
-                               "AVX-512 has (run it with --variant llvm_ad_rgb there)")
-        device = device_name(variant, reads=False)
-        frame = gathers_table(scenes, [m for m in args.methods.split(",") if m], args.passes)
-        write_table(frame, out / "hardware_gathers", "Table reads compiled into the CPU's gather instruction against "
-                    f"LLVM's loop of scalar loads (median kernel time per spp of {args.passes} interleaved passes of 8 "
-                    "spp after 2 warm-up passes, both builds in one run; `speed_up`: scalar-load time over gather "
-                    "time; see guiding/gather_bench.py)", device,
-                    f"python -m guiding bench --part gathers --scenes {args.scenes} --methods {args.methods} "
-                    f"--passes {args.passes}" + backend_options)
-        print(frame.to_string(index=False))
-        return
-    if schedule:
-        frame = pass_schedule_table(scenes, [m for m in args.methods.split(",") if m])
-        write_table(frame, out / f"pass_schedule_{tag}", "Pass modes: counted seconds of 512-spp renders with fixed "
-                    "8-spp passes, growing passes, and growing frozen passes (render + update, compilation excluded; "
-                    "medians of 2 alternating rounds; `speed_up_growing`: fixed over growing, `speed_up_frozen`: "
-                    "growing over frozen)", device,
-                    f"python -m guiding bench --part pass-schedule --scenes {args.scenes} --methods {args.methods}"
-                    + backend_options)
-        print(frame.to_string(index=False))
-        return
-    frame, breakdown = benchmark(scenes, [m for m in args.methods.split(",") if m], passes=args.passes,
-                                 breakdown=not args.no_breakdown)
-    command = (f"python -m guiding bench --scenes {args.scenes} --methods {args.methods} --passes {args.passes}"
-               + backend_options + (" --no-breakdown" if args.no_breakdown else ""))
-    write_table(frame, out / f"benchmark_{tag}", "Cost per spp of every method vs `brdf` and Mitsuba `path` (same "
-                f"run, {args.passes} interleaved passes of 8 spp after 2 warm-up passes, max depth 16; `trace-only`: "
-                "the throughput limit, `share_of_trace_limit`: rays/s as a fraction of its)", device,
-                command, sections={"Targets": target_table(frame, tag, breakdown)})
-    if not breakdown.empty:
-        write_table(breakdown, out / "cost_breakdown", "Cost breakdown of every guided method: kernel time per spp "
-                    "with the parts of the bounce switched on one by one (same interleaved run as "
-                    f"benchmark_{tag}; `increment`: the stage's cost over the previous stage, the first over `brdf`; "
-                    "partial stages are a benchmark instrument whose images are not meant to be correct)", device,
-                    command)
-        print(breakdown.to_string(index=False))
-    print(frame.to_string(index=False))
+    PARTS[args.part](_BenchRun(args, scenes, methods, out, variant, device_name(variant)))

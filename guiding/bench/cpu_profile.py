@@ -33,9 +33,9 @@ import pandas as pd
 
 from guiding.bench.child import child_failure, method_driver
 from guiding.errors import GuidingError
+from guiding.render.defaults import PASS_SPP
 
 WARMUP_PASSES = 3
-PASS_SPP = 8
 #: ``perf report --sort dso`` shared objects, grouped: the first pattern that matches names the group.
 #: perf names the code of anonymous executable memory ``[JIT] tid …`` (``[unknown]`` or ``//anon`` in older versions):
 #: in this process only Dr.Jit's kernels live there.

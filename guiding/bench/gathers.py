@@ -17,13 +17,14 @@ import pandas as pd
 
 from guiding.llvm_gathers import llvm_target_kept, use_hardware_gathers
 from guiding.bench.benchmark import _resolution, interleaved_passes
+from guiding.render.defaults import MAX_DEPTH, PASS_SPP
 
 #: Suffix of the integrator names of the builds with scalar loads.
 SCALAR_LOADS = " [scalar loads]"
 
 
-def gathers_table(scenes: list[tuple[str, float]], methods: list[str], passes: int = 8, pass_spp: int = 8,
-                  max_depth: int = 16) -> pd.DataFrame:
+def gathers_table(scenes: list[tuple[str, float]], methods: list[str], passes: int = 8, pass_spp: int = PASS_SPP,
+                  max_depth: int = MAX_DEPTH) -> pd.DataFrame:
     """Per scene and method (``path`` and ``brdf`` first): median kernel time per spp of both builds, the speed-up
     of the gather instruction (scalar-load time over gather time), and the ratio to ``brdf`` in each build."""
     from guiding.render.integrator import GuidedPathIntegrator

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from guiding.experiments.harness import RULE_LABELS, SAMPLER_LABELS
+from guiding.experiments.runs import RULE_LABELS, SAMPLER_LABELS
 from guiding.metrics import METRICS
 
 # ------------------------------------------------------------------------------- published numbers (MAE)

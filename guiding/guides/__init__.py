@@ -6,7 +6,7 @@ device-side part called from inside the Dr.Jit path loop (``new_paths``, ``sampl
 """
 
 from guiding.guides.base import Guide, NoPathState, UpdateResult
-from guiding.guides.parameters import PROPOSALS, RULES, SAMPLERS, default_proposal
+from guiding.guides.parameters import PROPOSALS, RULES, SAMPLERS
 from guiding.guides.bsdf import BSDFGuide
 
-__all__ = ["Guide", "NoPathState", "UpdateResult", "BSDFGuide", "RULES", "SAMPLERS", "PROPOSALS", "default_proposal"]
+__all__ = ["Guide", "NoPathState", "UpdateResult", "BSDFGuide", "RULES", "SAMPLERS", "PROPOSALS"]

@@ -13,7 +13,7 @@ from guiding.guides.parameters import COMBINE_LAST
 def rgb_mean(spectrum: mi.Spectrum) -> mi.Float:
     """The mean of an RGB value's three channels, per lane. Not ``dr.mean``, whose per-lane mean is traced as a
     sum times the array's width over three times its width: the width is a literal of the kernel, and every pass
-    of another size was a new render kernel (2 s of compilation each at 80 × 45)."""
+    of another size was a new render kernel, compiled again."""
     return (spectrum.x + spectrum.y + spectrum.z) * (1.0 / 3.0)
 
 

@@ -13,7 +13,7 @@ Both accept any vector: :func:`safe_normalize` rescales by the largest component
 (even denormal) and huge vectors keep their direction, and the zero vector or a non-finite one falls back to +z
 (the cube map needs no normalising at all: its face and position are ratios of the components). The path loop's
 directions are unit vectors already, and skip the rescaling (``unit=True``): the bounce's lookups are a good part of
-its instructions (README, "Cost per sample").
+its instructions (results/bench/README.md).
 """
 
 from __future__ import annotations

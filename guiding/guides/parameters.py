@@ -15,34 +15,10 @@ RULES = ("mc", "sarsa", "expected_sarsa")
 GUIDED_BSDFS = ("diffuse", "smooth")
 SAMPLERS = ("sphere_inv", "hemi_inv", "hemi_rej", "hemi_rej_plus")
 #: How the rejection samplers draw their target: ``bins`` (exactly: a bin from the pair's alias table of P·∫cos, then a
-#: direction ∝ cos inside it) or the paper's loop of ``uniform`` proposals (see :mod:`guiding.guides.grid.guide`).
+#: direction ∝ cos inside it) or the paper's loop of ``uniform`` proposals (see :mod:`guiding.guides.grid.samplers`).
 PROPOSALS = ("bins", "uniform")
-#: Benchmark instrument (``profile_stage`` of :class:`GridParameters`): the parts of the grid guide's bounce, switched
-#: on one by one. ``classify`` looks the vertex up and computes the guided mask, then uses the BSDF's sample;
-#: ``sample`` also draws the guided directions (weights are the BSDF's, the mixture pdf is not evaluated); ``pdf``
-#: also evaluates the exact mixture density (the full sampler, nothing recorded). A profiled guide records during its
-#: first :data:`PROFILE_TRAINING_PASSES` passes only (so that its tables are learnt), then stops. Images of these
-#: stages are not meant to be correct; they measure where the time goes (``python -m guiding bench``).
-PROFILE_STAGES = ("classify", "sample", "pdf")
-#: Passes a profiled guide records before it stops (the benchmark's warm-up passes).
-PROFILE_TRAINING_PASSES = 2
-#: Benchmark instrument (``profile_stage``): the whole bounce computed and recorded, but the path continues along
-#: the BSDF's own sample, so that its cost is the guide's work at ``brdf``'s paths, apart from what the guided paths
-#: themselves cost (they differ in length and in where they go).
-PROFILE_BSDF_PATHS = "bsdf_paths"
-#: Benchmark instrument (``profile_stage``, the rejection samplers' ``bins`` proposal): the whole bounce computed and
-#: recorded, but every vertex draws from and looks densities up in the first pair's alias row, a few KiB that stay in
-#: the core's cache, instead of its own pair's: what the rows' cache misses cost the bounce, and what drawing every
-#: vertex's directions from one distribution changes (a part of its gain, README). Its images are not meant to be
-#: correct; its paths are about as long as the method's, since a bin of the other pair's row that lies below
-#: the vertex's normal bin is rejected, and the BSDF's direction taken (``hemi_inv`` would take it: its paths were a
-#: third shorter).
-PROFILE_HOT_ROWS = "hot_rows"
-
-#: Least BSDF share of the rejection samplers (see :mod:`guiding.guides.grid.guide`): it bounds hemi_rej's weight by 5·ρ
-#: per bounce (measured at door-ajar's vertices, results/bounce_weights.md: second moment 1.6·ρ², against 1.8 at 0.1
-#: and 1.9 at 0.05). At 0.1 (10·ρ) the products of several such bounces were still heavy-tailed: on door-ajar one of
-#: 24 passes of sarsa-hemi_rej came out at 2.4× the mean, doubling the pass means' standard error.
+#: Least BSDF share of the rejection samplers (see :mod:`guiding.guides.grid.samplers`): it bounds hemi_rej's weight by 5·ρ
+#: per bounce. A smaller share leaves the products of several bounces heavy-tailed (results/bounce_weights.md).
 MIN_BSDF_SHARE = 0.2
 #: The range of a BSDF share the tree guides learn (``learn_bsdf_fraction``; :mod:`~guiding.guides.trees.bsdf_fraction`):
 #: the floor is the grid's ``min_bsdf_share``, for the same bound on the weights.
@@ -69,19 +45,8 @@ PAPER_SPP_UNIT = 4
 
 #: Floor of the exploration share ε of the grid policy. The paper's schedule alone drives ε to 1e-10 by 1000 spp;
 #: unexplored bins then get probabilities below float32 resolution in the tables, are never sampled, and the image is
-#: biased (measured: −20 % image mean on `cornell` with hemi_inv). With the floor every bin keeps ≥ ε_min/B.
+#: biased (docs/history.md). With the floor every bin keeps ≥ ε_min/B.
 MIN_EXPLORATION = 0.1
-
-
-def default_proposal(sampler: str) -> str:
-    """The proposal a rejection sampler uses unless told otherwise: ``bins`` for hemi_rej_plus, else ``uniform``."""
-    return "bins" if sampler == "hemi_rej_plus" else "uniform"
-
-
-def draws_bins_by_rejection(sampler: str, proposal: str) -> bool:
-    """Whether a sampler draws a bin from its pair's alias row, then a direction in it by rejection (the rejection
-    samplers' ``bins`` proposal): the samplers with in-bin tables, refined bins and the ``hot_rows`` instrument."""
-    return sampler.startswith("hemi_rej") and proposal == "bins"
 
 
 def _check(condition: bool, message: str) -> None:
@@ -110,7 +75,8 @@ class GridParameters:
       normal_resolution: odd cube-map resolution of the memo tables' normal bins (default 5: 150 bins).
       bsdf_fraction: BSDF share of the inversion samplers' mixture (default 0.5; 0 is the paper's pure sampler).
       proposal: ``bins`` or ``uniform`` (the paper's loop): how rejection samplers draw their target. Default
-        (None): ``bins`` for ``hemi_rej_plus``, ``uniform`` for ``hemi_rej``.
+        (None): the sampler's own, ``bins`` for ``hemi_rej_plus``, ``uniform`` for ``hemi_rej``
+        (:mod:`~guiding.guides.grid.samplers`); the inversion samplers take none.
       max_proposals: cap of the ``uniform`` rejection loop (default 64).
       min_bsdf_share: least BSDF share of the rejection samplers (default :data:`MIN_BSDF_SHARE`).
       min_exploration: floor of the exploration share ε (default :data:`MIN_EXPLORATION`; 0 is the paper's
@@ -120,8 +86,8 @@ class GridParameters:
         SD-tree's mixture): the guide knows nothing of a glossy lobe, the BSDF's sampling covers it.
       sub_resolution: R > 1 cuts each bin that holds at least ``refine_share`` of its cell's policy (once visited
         often enough) into R × R equal-area sub-bins whose distribution is learned too, and sampled where it is far
-        enough from uniform (:mod:`~guiding.guides.grid.refinement`; ``bins`` proposal only); default 1, no
-        refinement.
+        enough from uniform (:mod:`~guiding.guides.grid.refinement`; ``bins`` proposal only, which
+        :func:`~guiding.guides.grid.strategy.grid_strategy` checks); default 1, no refinement.
       refine_share: least policy share of a refined (cell, bin) entry (default 0.05, 25× a uniform bin's at D = 16).
       refine_capacity: most entries refined (default 4096; their tables are allocated up front).
       rebuild_growth: g ≥ 0: the record is rebuilt (Q, policy, memo tables, refinement) after a pass only once the
@@ -130,13 +96,10 @@ class GridParameters:
         :mod:`guiding.render.pass_schedule`); the targets of the passes in between are kept and folded in at the next
         rebuild. Default 0: after every pass (the paper's).
       statistics: count, per pass, guided vertices, invalid samples, rejection proposals and acceptances (default
-        False). The counters are atomics on 1-element arrays, several per bounce (measured: ``ours`` 301 against
-        237 ms/spp without them on cornell-box at scale 0.25); they are traced only when on, and only then does
-        ``update()`` report ``guided_samples``, ``invalid_share``, ``acceptance_rate`` and
+        False; :mod:`~guiding.guides.grid.counters`). The counters are atomics on 1-element arrays, several per
+        bounce, a good part of its cost (the benchmark's ``[+statistics]`` stage); they are traced only when on, and
+        only then does ``update()`` report ``guided_samples``, ``invalid_share``, ``acceptance_rate`` and
         ``proposals_per_sample``. They never touch the image.
-      profile_stage: None (the guide), one of :data:`PROFILE_STAGES` (a benchmark instrument that switches the
-        bounce's later parts off), :data:`PROFILE_BSDF_PATHS` or :data:`PROFILE_HOT_ROWS`; their images are not meant to
-        be correct.
     """
 
     spatial_resolution: int = 8
@@ -156,14 +119,11 @@ class GridParameters:
     refine_capacity: int = 4096
     rebuild_growth: float = 0.0
     statistics: bool = False
-    profile_stage: str | None = None
 
     def __post_init__(self):
         _check(self.rule in RULES, f"unknown learning rule '{self.rule}' (choose from {', '.join(RULES)})")
         _check(self.sampler in SAMPLERS, f"unknown sampler '{self.sampler}' (choose from {', '.join(SAMPLERS)})")
-        if self.proposal is None:
-            object.__setattr__(self, "proposal", default_proposal(self.sampler))
-        _check(self.proposal in PROPOSALS,
+        _check(self.proposal is None or self.proposal in PROPOSALS,
                f"unknown proposal '{self.proposal}' (choose from {', '.join(PROPOSALS)})")
         _check(1 <= self.spatial_resolution <= 256 and 1 <= self.directional_resolution <= 256,
                f"S and D must be in 1..256, got S = {self.spatial_resolution}, D = {self.directional_resolution}")
@@ -177,18 +137,9 @@ class GridParameters:
                f"unknown guided_bsdfs '{self.guided_bsdfs}' (choose from {', '.join(GUIDED_BSDFS)})")
         _check(0 < self.smooth_bsdf_share < 1, f"smooth_bsdf_share must be in (0, 1), got {self.smooth_bsdf_share}")
         _check(1 <= self.sub_resolution <= 16, f"sub_resolution must be in 1..16, got {self.sub_resolution}")
-        _check(self.sub_resolution == 1 or draws_bins_by_rejection(self.sampler, self.proposal),
-               f"sub_resolution > 1 refines the bins proposal of the rejection samplers, not {self.sampler} "
-               f"({self.proposal})")
         _check(0 < self.refine_share <= 1, f"refine_share must be in (0, 1], got {self.refine_share}")
         _check(self.rebuild_growth >= 0, f"rebuild_growth must be >= 0, got {self.rebuild_growth}")
         _check(self.refine_capacity >= 1, f"refine_capacity must be >= 1, got {self.refine_capacity}")
-        _check(self.profile_stage in (None, *PROFILE_STAGES, PROFILE_BSDF_PATHS, PROFILE_HOT_ROWS),
-               f"unknown profile stage '{self.profile_stage}' (choose from "
-               f"{', '.join((*PROFILE_STAGES, PROFILE_BSDF_PATHS, PROFILE_HOT_ROWS))})")
-        _check(self.profile_stage != PROFILE_HOT_ROWS or draws_bins_by_rejection(self.sampler, self.proposal),
-               f"profile stage '{PROFILE_HOT_ROWS}' is for the rejection samplers' bins proposal, not "
-               f"{self.sampler} ({self.proposal})")
 
 
 @dataclass(frozen=True)

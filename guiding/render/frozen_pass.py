@@ -2,8 +2,8 @@
 are launched again by later passes (Dr.Jit's ``dr.freeze``).
 
 Tracing the path loop in Python and assembling its kernel cost a pass about as much as the kernel itself at the
-image sizes of the experiments (64 × 64, 8 spp: 20 ms of tracing and 5 ms of code generation against 28 ms of
-kernel), and the paper's ``ours`` pays it after every 8-spp pass. A frozen pass launches the recorded kernels with
+small image sizes of the experiments, and the paper's ``ours`` pays it after every 8-spp pass (the measurements:
+results/pass_schedule/README.md). A frozen pass launches the recorded kernels with
 the pass's inputs: the scene, the seed, and every Dr.Jit array of the guide and the integrator's counters, gathered
 afresh each pass (:func:`device_arrays`), so the tables an update rebuilt are the ones read.
 

@@ -7,9 +7,9 @@ keeps passes of ``pass_spp``; BSDF sampling and a frozen guide have no such limi
 current iteration (each iteration's variance is estimated from its passes), the next snapshot, the spp or seconds
 left in the budget, and :data:`MAX_PASS_PATHS` paths per launch.
 
-Why: every pass pays for tracing the path loop in Python, launching its kernel and the guide's update. At the
-sizes of ``config/paper.yaml`` (80 × 45 pixels, 8 spp: 28 800 paths) that was 22 % of a ``brdf`` pass and 30–40 %
-of a guided one, and a launch that small keeps two threads unevenly busy (README, "Pass schedule").
+Why: every pass pays for tracing the path loop in Python, launching its kernel and the guide's update, a large
+share of a pass at the small sizes of ``config/paper.yaml``, and a launch that small keeps the threads unevenly busy
+(the measurements: results/pass_schedule/README.md).
 
 Sizes are ``pass_spp·2^k`` only: the render kernel is compiled once for every spp that is a power of two times
 another (Mitsuba's sampler and film take the spp as a kernel constant where it is not a power of two).

@@ -128,7 +128,8 @@ def scene_run_violations(run: SceneRun) -> list[str]:
         for key in ("invalid_share", "acceptance_rate"):
             if p.guide.get(key) is not None and not 0 <= p.guide[key] <= 1:
                 problems.append(f"pass {p.index}: {key} = {p.guide[key]}")
-        if (p.guide.get("proposals_per_sample") or 0) > getattr(run.guide, "max_proposals", np.inf):
+        if (p.guide.get("proposals_per_sample") or 0) > getattr(getattr(run.guide, "parameters", None),
+                                                                "max_proposals", np.inf):
             problems.append(f"pass {p.index}: {p.guide['proposals_per_sample']} proposals per sample")
         for key in ("dropped_entries", "clamped_entries"):
             if p.guide.get(key):

@@ -15,7 +15,8 @@ from guiding.errors import GuidingError
 from guiding.guides import PROPOSALS, RULES, SAMPLERS
 from guiding.guides.alias_rows import SLOT_BYTES
 from guiding.guides.grid.guide import GridGuide
-from guiding.guides.grid.record import RadianceRecord, table_needs
+from guiding.guides.grid.record import RadianceRecord
+from guiding.guides.grid.strategy import grid_strategy
 from guiding.guides.grid.refinement import REFINE_VISITS
 from guiding.guides.methods import MEMORY_LIMIT_VARIABLE, check_method, format_size, make_guide, table_bytes
 from arrays import few
@@ -34,9 +35,10 @@ def test_planned_table_size_is_what_built_tables_report(rule, figures):
     or 24 (the bins proposal: those above the horizon of the normal bin's centre)."""
     for sampler in SAMPLERS:
         for proposal in PROPOSALS:
-            record = GridGuide(spatial_resolution=2, directional_resolution=4, rule=rule, sampler=sampler,
-                               proposal=proposal).record_table
-            planned = RadianceRecord.planned_bytes(2, 4, **table_needs(rule, sampler, proposal))
+            guide = GridGuide(spatial_resolution=2, directional_resolution=4, rule=rule, sampler=sampler,
+                              proposal=proposal)
+            record = guide.record_table
+            planned = RadianceRecord.planned_bytes(2, 4, **grid_strategy(guide.parameters).table_needs())
             fresh = record.memory_bytes()
             assert fresh <= planned, f"{sampler} ({proposal}): planned {planned} bytes, built {fresh}"
             if record.needs_pairs:

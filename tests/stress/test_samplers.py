@@ -2,7 +2,7 @@
 
 hemi_inv recomputed the density of a direction from its bin, and a direction drawn at a bin's edge could be looked
 up in a neighbour whose probability is below float32 resolution: pdf 0 above the surface (policies with ε → 0). It
-now reports the density of the bin it drew in (`GridGuide._mixture_pdf(chosen_bin=…, bin_density=…)`). The
+now reports the density of the bin it drew in (`GridSampler.pdf(chosen_bin=…, bin_density=…)`). The
 rejection loop is capped by construction; the chi-square tests at the worst acceptance rates check that the fallback
 share is in the pdf.
 """
@@ -70,8 +70,8 @@ def test_rejection_worst_acceptance(method, where, figures):
     problems = sample_violations(si, bs, weight)
     assert not problems, few(problems)
     assert stats["guided_samples"] == size, f"{stats['guided_samples']} of {size} samples guided"
-    assert per_sample <= guide.max_proposals, \
-        f"{per_sample:.1f} proposals per sample, cap {guide.max_proposals}"
+    assert per_sample <= guide.parameters.max_proposals, \
+        f"{per_sample:.1f} proposals per sample, cap {guide.parameters.max_proposals}"
     adapter = GuideAdapter(guide, normal)
     passed, messages = chi_square(adapter.sample_func, adapter.pdf_func, test_count=len(WORST_ACCEPTANCE),
                                   sample_count=200_000, res=64, ires=32)

@@ -67,8 +67,7 @@ class LambertianBsdfs:
     """Whether every BSDF a guide guides in a scene is Lambertian (:func:`lambertian_sides`), and then their value,
     density and samples computed inline; else Mitsuba's calls, unchanged. All or nothing per scene: with a BSDF of
     another kind, its lanes would need Mitsuba's call beside the inline one, and a call costs the passing of its
-    arguments even in packets with no lane to run (measured: a mixed kernel was slower on cornell-box than
-    Mitsuba's call alone). A scene with instances keeps Mitsuba's calls: ``scene.shapes()`` lists an instance, not
+    arguments even in packets with no lane to run (a mixed kernel is slower than Mitsuba's call alone). A scene with instances keeps Mitsuba's calls: ``scene.shapes()`` lists an instance, not
     the shapes (and BSDFs) of its shape group, which its rays hit.
 
     Parameters:

@@ -40,7 +40,7 @@ from guiding.errors import GuidingError
 from guiding.guides import alias_rows
 from guiding.guides.grid_cells import GridCells
 from guiding.guides.grid.refinement import BinRefinement
-from guiding.guides.parameters import MIN_EXPLORATION, draws_bins_by_rejection
+from guiding.guides.parameters import MIN_EXPLORATION
 from guiding.guides.pass_sums import add_target, entry_sums, footprint, pass_sums, planned_footprint
 
 #: Added to Q before normalising, so that no bin has zero probability (method.md §4).
@@ -87,16 +87,6 @@ class PairMemo:
     row: mi.UInt32          # the pair's row of ``hemi_alias`` (its bits stored in a float slot)
     bound: mi.Float         # M ≥ max P·cos(ω, n) over the normal bin
     in_bin_miss: mi.Float   # the chance that every in-bin proposal is rejected (``bins`` proposal)
-
-
-def table_needs(rule: str, sampler: str, proposal: str) -> dict[str, bool]:
-    """The tables a grid guide with this rule, sampler and proposal needs (the ``needs_*`` arguments of
-    :class:`RadianceRecord`): the cells' alias tables for sphere_inv, the memo tables for the hemisphere samplers,
-    the per-pair alias tables for hemi_inv and for the rejection samplers' ``bins`` proposal, V for Expected SARSA."""
-    in_bin = draws_bins_by_rejection(sampler, proposal)
-    return {"needs_cell_alias": sampler == "sphere_inv", "needs_memo": sampler.startswith("hemi"),
-            "needs_hemi_alias": sampler == "hemi_inv" or in_bin, "needs_in_bin": in_bin,
-            "needs_value": rule == "expected_sarsa"}
 
 
 def exploration(spp_done: int, floor: float = MIN_EXPLORATION) -> float:

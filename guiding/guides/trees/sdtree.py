@@ -79,7 +79,7 @@ class SDTreeGuide(TreeGuide):
         """Vertices an S-tree leaf must have recorded, in an iteration that traced ``paths`` paths, to split:
         ``c·sqrt(paths / (PAPER_SPP_UNIT·c_pixels))``. Growing as the square root of the samples, it lets the
         number of leaves and the vertices per leaf grow alike, whatever the image size (c ∝ sqrt(pixels) at a
-        given spp): README, "SD-tree baseline", for the measurements at three image sizes."""
+        given spp; results/README.md, "The SD-tree baseline studies", measures it at three image sizes)."""
         return self.c * math.sqrt(paths / (PAPER_SPP_UNIT * self.c_pixels))
 
     def iteration_spp(self) -> int | None:
