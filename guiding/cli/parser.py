@@ -80,6 +80,8 @@ def _add_render(commands) -> None:
     budget = render.add_mutually_exclusive_group(required=True)
     budget.add_argument("--spp", type=_positive_int, help="samples per pixel budget")
     budget.add_argument("--seconds", type=_positive_float, help="time budget in seconds")
+    render.add_argument("--nee", action="store_true",
+                        help="next-event estimation with MIS against the method's own density (`path` always has it)")
     render.add_argument("--exclude-passes", type=int, default=0,
                         help="leading passes not counted against a seconds budget (default 0)")
     render.add_argument("--fixed-passes", action="store_true",
@@ -139,6 +141,8 @@ def _add_bench(commands) -> None:
     bench.add_argument("--methods", help="methods timed against brdf (comma-separated; default: cost: every kind, "
                        "pass-schedule: brdf, ours, ours-plus, sdtree; gathers: ours, sdtree)")
     bench.add_argument("--out", help="output folder (default results/bench, results/pass_schedule)")
+    bench.add_argument("--nee", action="store_true",
+                       help="cost: every guided_path method, brdf included, with next-event estimation (as path)")
     bench.add_argument("--no-breakdown", action="store_true",
                        help="skip the cost breakdown (the guided methods' stages, results/bench/cost_breakdown.md)")
     _add_backend_options(bench)

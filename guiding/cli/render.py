@@ -15,6 +15,12 @@ from guiding.output_dirs import output_dir, prepare_output_dir
 from guiding.provenance import render_provenance
 
 
+def samples_emitters(integrator) -> bool:
+    """Whether a render's integrator does next-event estimation: ``guided_path`` with ``nee``, and Mitsuba's ``path``
+    (the only Mitsuba integrator the commands render with)."""
+    return bool(getattr(integrator, "nee", True))
+
+
 def _image_metadata(scene_name: str, args, method: str, integrator, budget, provenance: dict, combine: str) -> dict:
     """What every EXR file of a render carries in its header (imageio.write_exr; the spp are added per file): the
     method and its guide's parameters, the render's parameters (``combine``: its final-image mode), seed, scene,
@@ -22,7 +28,8 @@ def _image_metadata(scene_name: str, args, method: str, integrator, budget, prov
     from guiding.provenance import software_versions
 
     guide = getattr(integrator, "guide", None)
-    parameters = {"budget": asdict(budget), "max_depth": args.max_depth, "scale": args.scale, "combine": combine}
+    parameters = {"budget": asdict(budget), "max_depth": args.max_depth, "scale": args.scale, "combine": combine,
+                  "nee": samples_emitters(integrator)}
     return {"method": method, "scene": scene_name, "seed": args.seed, "parameters": parameters,
             "guide": {k: v for k, v in (guide.stats() if guide is not None else {}).items()
                       if not isinstance(v, (dict, list))},
@@ -53,6 +60,7 @@ def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget
     film_size = [int(v) for v in scene.sensors()[0].film().size()]
     stats = {"scene": scene_name, "scene_file": str(find_scene(scene_name, args.scene_dir)), "scale": args.scale,
              "resolution": film_size, "method": method, "seed": args.seed, "max_depth": args.max_depth,
+             "nee": samples_emitters(integrator),
              **result.summary(), "guide": getattr(getattr(integrator, "guide", None), "stats", dict)(),
              "provenance": provenance, "per_pass": [asdict(p) for p in result.passes]}
     if snapshots is not None:
@@ -80,15 +88,12 @@ def command_render(args) -> None:
     find_scene(args.scene, args.scene_dir)
     method.check_memory(args.memory_limit)
     variant = set_variant(args.variant, args.threads)
-    guide = method.build(args.memory_limit)
-    if args.save_guide and not guide.records():
-        raise GuidingError(f"--save-guide: method '{method.label}' learns nothing to save")
-    from guiding.render.integrator import GuidedPathIntegrator
-    import mitsuba as mi
+    from guiding.render.integrator import integrator_for
 
-    props = mi.Properties()
-    props["max_depth"] = args.max_depth
-    integrator = GuidedPathIntegrator(props, guide=guide)
+    integrator = integrator_for(method, args.max_depth, args.nee, args.memory_limit)
+    guide = getattr(integrator, "guide", None)
+    if args.save_guide and (guide is None or not guide.records()):
+        raise GuidingError(f"--save-guide: method '{method.label}' learns nothing to save")
     with output_dir(args.out) as out:
         stats = _render_to(out, args.scene, args, integrator, method.label, budget, variant)
     print(f"{method.label} on {args.scene}: {stats['spp']} spp in {stats['seconds']:.2f} s "

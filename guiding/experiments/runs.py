@@ -197,4 +197,4 @@ def missing_scenes(config: dict, runs: list[Run]) -> list[str]:
 
 def unknown_methods(runs: list[Run]) -> list[str]:
     """Methods of the runs that this checkout does not know."""
-    return sorted({r.spec.name for r in runs if r.spec.guide is None})
+    return sorted({r.spec.name for r in runs if not r.spec.known})

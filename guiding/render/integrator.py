@@ -238,3 +238,16 @@ def register() -> None:
     if variant not in _registered:
         mi.register_integrator("guided_path", lambda props: GuidedPathIntegrator(props))
         _registered.add(variant)
+
+
+def integrator_for(method, max_depth: int = defaults.MAX_DEPTH, nee: bool = False,
+                   memory_limit: int | str | None = None) -> mi.SamplingIntegrator:
+    """The integrator that renders ``method`` (a :class:`~guiding.guides.methods.Method`): the Mitsuba integrator it
+    names (``path``, which always does next-event estimation), else ``guided_path`` with a fresh guide of the method
+    and ``nee`` (refused, GuidingError, if the guide's tables would exceed ``memory_limit``)."""
+    if method.mitsuba_integrator is not None:
+        return mi.load_dict({"type": method.mitsuba_integrator, "max_depth": max_depth})
+    props = mi.Properties()
+    props["max_depth"] = max_depth
+    props["nee"] = nee
+    return GuidedPathIntegrator(props, guide=method.build(memory_limit))
