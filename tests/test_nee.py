@@ -143,6 +143,43 @@ def test_nee_without_emitters_says_so_in_one_line():
         _nee_integrator("brdf").prepare(scene)
 
 
+def _floor_lit_by(**emitters) -> mi.Scene:
+    return mi.load_dict({"type": "scene", "sensor": {"type": "perspective", "film": FILM},
+                         "floor": {"type": "rectangle", "bsdf": WHITE}, **emitters})
+
+
+def test_nee_refuses_emitters_mitsuba_cannot_sample_in_one_line():
+    """A surface that emits in one direction only (``directionalarea``: no emitter sample reaches it) and Mitsuba's
+    ``timed_sunsky`` (whose directions it cannot sample in a traced call; with another emitter beside it Dr.Jit
+    aborts the process) are refused before the first pass, naming the emitter; without nee they render as before."""
+    one_way = {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate((0, 2, 0)).rotate((1, 0, 0), 90),
+               "emitter": {"type": "directionalarea"}}
+    cases = {"'directionalarea' (it emits in one direction only": _floor_lit_by(lamp=one_way),
+             "'timed_sunsky' (Mitsuba ": _floor_lit_by(sky={"type": "timed_sunsky"}, bulb={"type": "point"})}
+    for named, scene in cases.items():
+        with pytest.raises(GuidingError) as refused:
+            _nee_integrator("ours").prepare(scene)
+        assert str(refused.value).startswith(f"nee cannot sample the emitter {named}") and "\n" not in str(refused.value)
+        GuidedPathIntegrator(mi.Properties(), guide=make_guide("ours")).prepare(scene)
+    for sampled in ({"type": "point"}, {"type": "spot"}, {"type": "directional"}, {"type": "constant"},
+                    {"type": "sunsky"}, {"type": "projector"}, _sphere_light(), _environment()):
+        _nee_integrator("brdf").prepare(_floor_lit_by(light=sampled))
+
+
+def test_mitsuba_still_cannot_sample_timed_sunsky_emitters():
+    """Why timed_sunsky is refused: Mitsuba's own path integrator fails on it (in a child process: with a second
+    emitter the failure aborts the process). When a Mitsuba release samples it, this fails: lift the refusal."""
+    import subprocess
+    import sys
+
+    script = ("import mitsuba as mi; mi.set_variant('llvm_ad_rgb'); "
+              "scene = mi.load_dict({'type': 'scene', 'sensor': {'type': 'perspective', 'film': {'type': 'hdrfilm', "
+              "'width': 8, 'height': 8}}, 'floor': {'type': 'rectangle'}, 'sky': {'type': 'timed_sunsky'}}); "
+              "mi.render(scene, integrator=mi.load_dict({'type': 'path'}), spp=1)")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0 and "not permitted" in done.stderr, done.stderr[-2000:]
+
+
 def test_the_plugin_takes_nee_from_xml_and_load_dict():
     import guiding  # noqa: F401  (registers guided_path for the variant the tests set)
 

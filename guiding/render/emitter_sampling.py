@@ -5,6 +5,8 @@ Both strategies' weights use the densities the loop really samples with: the emi
 guide's one-sample mixture of BSDF and guide (:meth:`guiding.guides.base.Guide.pdf`, equal to the ``bs.pdf`` its
 ``sample`` reports), not the BSDF's density alone. Delta emitters (point, directional) are reached only by emitter
 sampling (weight 1); delta BSDF lobes only by the guide's sample (weight 1 on the emission they hit).
+
+Emitters it cannot sample are refused before a render (:func:`unsampleable_emitters`).
 """
 
 from __future__ import annotations
@@ -13,6 +15,27 @@ from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
+
+
+#: Emitters (by Mitsuba class name, with their plugin's name) whose directions Mitsuba cannot sample inside a traced
+#: call: its own ``path`` integrator fails on them, and Dr.Jit aborts the process where the scene has other emitters
+#: too (tests/test_nee.py checks that this is still so).
+UNSAMPLED_IN_TRACED_CALLS = {"TimedSunskyEmitter": "timed_sunsky"}
+
+
+def unsampleable_emitters(scene: mi.Scene) -> list[str]:
+    """The emitters of ``scene`` that next-event estimation cannot sample, each named by its plugin with why:
+    those of :data:`UNSAMPLED_IN_TRACED_CALLS`, and surfaces that emit in one direction only (``directionalarea``),
+    whose light no emitter sample from a point can reach (Mitsuba renders them only with its particle tracer)."""
+    found = []
+    for emitter in scene.emitters():
+        flags = emitter.flags()
+        if emitter.class_name() in UNSAMPLED_IN_TRACED_CALLS:
+            found.append(f"'{UNSAMPLED_IN_TRACED_CALLS[emitter.class_name()]}' (Mitsuba {mi.__version__} cannot "
+                         "sample its directions in a traced call)")
+        elif mi.has_flag(flags, mi.EmitterFlags.Surface) and mi.has_flag(flags, mi.EmitterFlags.DeltaDirection):
+            found.append("'directionalarea' (it emits in one direction only: only a particle tracer renders it)")
+    return found
 
 
 def mis_weight(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:

@@ -20,7 +20,8 @@ from guiding.errors import GuidingError
 from guiding.guides import Guide
 from guiding.guides.methods import make_guide
 from guiding.render import defaults
-from guiding.render.emitter_sampling import NoPreviousVertex, PreviousVertex, hit_weight, sample_emitter
+from guiding.render.emitter_sampling import (NoPreviousVertex, PreviousVertex, hit_weight, sample_emitter,
+                                             unsampleable_emitters)
 from guiding.render.frozen_pass import FrozenPasses, recordable
 from guiding.render.progressive import Budget, render
 
@@ -109,9 +110,14 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     def prepare(self, scene: mi.Scene) -> None:
         """Before the first pass on ``scene``: the guide allocates its tables; and where no BSDF of the scene is one
         the guide guides, the passes trace plain BSDF sampling, without the guide's code (masked off at every
-        vertex, it would still cost every bounce). The passes on ``scene`` are frozen from here on (``freeze``)."""
+        vertex, it would still cost every bounce). The passes on ``scene`` are frozen from here on (``freeze``).
+        With ``nee``, a scene without emitters, or with one that emitter sampling cannot sample
+        (:func:`~guiding.render.emitter_sampling.unsampleable_emitters`), is refused (GuidingError, one line)."""
         if self.nee and not scene.emitters():
             raise GuidingError("nee samples emitters, and this scene has none: render it without nee")
+        unsampleable = unsampleable_emitters(scene) if self.nee else []
+        if unsampleable:
+            raise GuidingError(f"nee cannot sample the emitter {'; '.join(unsampleable)}: render it without nee")
         self.guide.prepare(scene)
         self.path_guide = self.guide if self.guide.guides_any(scene) else _BSDF_SAMPLING
         self.frozen_passes = FrozenPasses(self, scene, _PassRenderer) if self.freeze and recordable(scene) else None
