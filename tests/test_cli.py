@@ -126,6 +126,73 @@ def test_bad_render_input(tmp_path, capsys, args, message):
     assert not out.exists() or not any(out.iterdir())
 
 
+NO_EMITTER_SCENE = """<scene version="3.0.0">
+    <default name="resx" value="16"/><default name="resy" value="16"/>
+    <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="$resx"/>
+        <integer name="height" value="$resy"/></film></sensor>
+    <shape type="rectangle"><bsdf type="diffuse"/></shape>
+</scene>"""
+
+
+def test_nee_on_a_scene_without_emitters_is_one_line_and_writes_nothing(tmp_path):
+    """In a real process: exit code 2, one line, no output folder; Mitsuba's path, which ignores --nee, renders."""
+    scene = tmp_path / "dark.xml"
+    scene.write_text(NO_EMITTER_SCENE)
+    command = [sys.executable, "-m", "guiding", "render", "--scene", str(scene), "--method", "ours", "--nee", "--spp",
+               "8", "--quiet", "--out", str(tmp_path / "out")]
+    done = subprocess.run(command, capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 2 and done.stdout == "", done.stderr[-2000:]
+    assert done.stderr.splitlines() == ["error: nee samples emitters, and this scene has none: render it without nee"]
+    assert not (tmp_path / "out").exists()
+    command[command.index("ours")] = "path"
+    assert subprocess.run(command, capture_output=True, cwd=ROOT).returncode == 0
+    assert strict_load(tmp_path / "out" / "stats.json")["nee"] is True
+
+
+def test_demo_entries_are_parsed_once_into_methods_and_nee():
+    from guiding.cli.parser import DemoEntry, parse_args
+
+    args = parse_args(["demo", "--methods", "path,ours+nee,ours-S4"])
+    assert args.methods == (DemoEntry("path"), DemoEntry("ours", True), DemoEntry("ours-S4"))
+    assert [entry.name for entry in args.methods] == ["path", "ours+nee", "ours-S4"]
+    assert args.methods[1].render_args() == ["--method", "ours", "--nee"]
+    default = parse_args(["demo"])
+    assert (default.seconds, default.spp) == (5.0, None)
+    assert [e.name for e in default.methods][:3] == ["path", "brdf", "ours"] and any(e.nee for e in default.methods)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--methods", "ours+nee,ours+nee"], "'ours+nee' is given twice"),
+    (["--methods", ","], "no method given"),
+    (["--methods", "path,ours+nees"], "unknown method 'ours+nees'"),
+    (["--seconds", "2", "--spp", "8"], "not allowed with argument"),
+])
+def test_bad_demo_input_writes_nothing(tmp_path, capsys, args, message):
+    out = tmp_path / "demo"
+    assert main(["demo", *args, "--out", str(out)]) == 2
+    assert message in _one_error_line(capsys) and not out.exists()
+
+
+def test_demo_compares_methods_with_and_without_nee_at_equal_time(tmp_path):
+    """The summary: method, nee, spp, seconds (counted, each at least the budget), MAE, relMSE and the efficiency
+    relative to path (MAE²·t of path over the method's; 1 for path)."""
+    out = tmp_path / "demo"
+    assert main(["demo", "--scene", "cornell", "--scale", "0.05", "--seconds", "0.3", "--reference-spp", "64",
+                 "--methods", "path,brdf,brdf+nee", "--out", str(out)]) == 0
+    lines = (out / "summary.md").read_text().splitlines()
+    assert lines[0] == "# cornell at scale 0.05, 0.3 s each"
+    header, _, *rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines[2:7]]
+    assert header == ["method", "nee", "spp", "seconds", "mae", "relmse", "efficiency_vs_path"]
+    assert [row[:2] for row in rows] == [["path", "True"], ["brdf", "False"], ["brdf", "True"]]
+    mae, seconds, efficiency = ([float(row[header.index(k)]) for row in rows] for k in ("mae", "seconds",
+                                                                                       "efficiency_vs_path"))
+    assert min(seconds) >= 0.3 and efficiency[0] == 1
+    # The table rounds to four digits: its MAE and seconds give the efficiency to a few parts in a thousand.
+    assert efficiency[2] == pytest.approx(mae[0] ** 2 * seconds[0] / (mae[2] ** 2 * seconds[2]), rel=6e-3)
+    assert {p.name for p in out.iterdir()} == {"path", "brdf", "brdf+nee", "reference-cornell-x0.05-64spp",
+                                               "summary.md"}
+
+
 def test_unwritable_output(tmp_path, capsys):
     blocker = tmp_path / "file"
     blocker.write_text("x")

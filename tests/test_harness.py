@@ -75,7 +75,7 @@ def test_ci_config_uses_only_methods_that_exist():
     assert the_plan.warnings == [] and the_plan.config["strict"] is True
     assert {r.spec.label for r in the_plan.runs} == {"brdf", "ours", "ours-expected", "ours-S4-D4", "ours-S4-D8",
                                                      "ours-S8-D4", "ours-S8-D8", "mc-sphere_inv", "mc-hemi_rej_plus",
-                                                     "sarsa-sphere_inv", "sarsa-hemi_rej_plus"}
+                                                     "sarsa-sphere_inv", "sarsa-hemi_rej_plus", "path"}
     assert {r.scene for r in the_plan.runs} == {"cornell", "door-ajar"}
 
 
@@ -110,6 +110,8 @@ def _mutate(path, value):
      "methods.ours: method 'ours': spatial_resolution='4' is not an integer"),
     (("methods", "ours", "set"), {"spatial_resolution": 0}, "methods.ours: method 'ours' with spatial_resolution=0"),
     (("methods", "ours", "set"), {"rule": ["mc"]}, "methods.ours.set.rule: ['mc'] is not of type"),
+    (("experiments", "practical", "nee"), "yes", "experiments.practical.nee: 'yes' is not of type 'boolean'"),
+    (("methods", "path", "set"), {"max_depth": 4}, "methods.path: method 'path' takes no parameters"),
     (("methods", "brdf", "set"), {"bsdf_fraction": 0.5}, "methods.brdf: method 'brdf' takes no parameters"),
     (("experiments", "table1", "method"), "brdf", "experiments.table1.method: method 'brdf' takes no parameters"),
     (("experiments", "table1", "method"), "sdtree", "experiments.table1.method: method 'sdtree' has no parameter"),
@@ -234,7 +236,7 @@ def test_ci_workflow_runs_end_to_end(ci_run):
     for frame in (t1, t2, et, conv):
         assert _finite(frame, "mae") and _finite(frame, "relmse") and (frame.mae > 0).all()
         assert (frame.nonfinite_pixels == 0).all()
-    for experiment in ("table1", "table2", "equal_time", "convergence"):
+    for experiment in ("table1", "table2", "equal_time", "convergence", "practical"):
         runs = pd.read_csv(out / "tables" / f"{experiment}_runs.csv")
         assert runs.host.notna().all() and runs.device.str.len().gt(0).all() and (runs.variant == "llvm_ad_rgb").all()
         for metric in ("flip", "mse", "smape", "relmse_trimmed"):   # beside the paper's MAE, for every render
@@ -245,13 +247,44 @@ def test_ci_workflow_runs_end_to_end(ci_run):
     assert (timed.threads == 2).all()  # a timed render took every core given (--cores 2)
     assert (pd.read_csv(out / "tables" / "table1_runs.csv").threads == 1).all()
     assert "| **cornell** |" in (out / "tables" / "equal_time.md").read_text()
-    for name in ("table1_heatmap", "equal_time_comparison", "convergence"):
+    for name in ("table1_heatmap", "equal_time_comparison", "convergence", "practical_comparison"):
         assert (out / "figures" / f"{name}.png").stat().st_size > 1000
     prov = json.loads((out / "provenance.json").read_text())
     assert prov["config"]["out"] == "results/ci" and prov["versions"]["mitsuba"]
     assert {r["experiment"] for r in prov["renders"]} == {"table1", "table2", "equal_time", "convergence",
-                                                          "reference"}
+                                                          "practical", "reference"}
     assert seconds < 300
+
+
+def test_ci_practical_table_is_each_method_against_path(ci_run):
+    """The practical experiment end to end: `ours` renders with next-event estimation (the render says so), Mitsuba's
+    `path` renders through the same command, timed, and the table's efficiency is, as docs/harness.md defines it,
+    path's MAE²·t over the method's (t: the counted seconds), 1 for path; the counted spp leave out the excluded
+    leading pass."""
+    workdir, _ = ci_run
+    out = workdir / "results" / "ci"
+    table = pd.read_csv(out / "tables" / "practical.csv").set_index("method")
+    assert list(table.index) == ["path", "ours"] and table.nee.tolist() == [True, True]
+    assert table.label.tolist() == ["Mitsuba path", "Ours + NEE"]
+    metrics = {method: json.loads((out / "renders" / "practical" / "cornell" / method / "1s" / "seed0" /
+                                   "metrics.json").read_text()) for method in ("path", "ours")}
+    cost = {m: r["mae"] ** 2 * r["stats"]["budget_seconds_counted"] for m, r in metrics.items()}
+    assert table.loc["path", "efficiency_vs_path"] == pytest.approx(1.0)
+    assert table.loc["ours", "efficiency_vs_path"] == pytest.approx(cost["path"] / cost["ours"], rel=1e-5)
+    assert table.loc["ours", "efficiency_vs_path"] != pytest.approx(1.0, abs=1e-3)
+    for method, run in metrics.items():
+        assert run["nee"] is True and run["stats"]["nee"] is True and run["cli_method"] == method
+        assert run["stats"]["budget_seconds_counted"] >= 1.0 and table.loc[method, "mae"] == pytest.approx(run["mae"], rel=1e-5)
+        assert table.loc[method, "spp_counted"] == run["stats"]["spp"] - 8    # one excluded pass of 8 spp
+    assert imageio.read_exr_metadata(out / "renders" / "practical" / "cornell" / "ours" / "1s" / "seed0" /
+                                     "image.exr")["parameters"]["nee"] is True
+    et = pd.read_csv(out / "tables" / "equal_time.csv")
+    assert not et.nee.any() and (et.spp_counted == et.spp - 8).all()
+    text = (out / "tables" / "practical.md").read_text()
+    assert "| scene | Mitsuba path | Ours + NEE |" in text and "| **cornell** | 1× |" in text
+    assert "**geometric mean**" in text and "Next-event estimation in every render." in text
+    log = (out / "logs" / "render_timed" / "practical" / "cornell" / "ours" / "1s" / "seed0.log").read_text()
+    assert "ours with nee on cornell: " in log
 
 
 def test_ci_outputs_are_strict_json_and_carry_their_metadata(ci_run):
@@ -314,10 +347,10 @@ def test_report_after_the_run_holds_every_table_figure_and_the_provenance(ci_run
     assert result.returncode == 0, result.stderr[-2000:]
     embedded = _report_files(report)
     out = workdir / "results" / "ci"
-    expected = [out / "tables" / f"{e}{suffix}" for e in ("table1", "table2", "equal_time", "convergence")
-                for suffix in (".csv", ".md", "_runs.csv")]
+    expected = [out / "tables" / f"{e}{suffix}" for e in ("table1", "table2", "equal_time", "convergence",
+                                                          "practical") for suffix in (".csv", ".md", "_runs.csv")]
     expected += [out / "figures" / f"{name}.png" for name in ("table1_heatmap", "equal_time_comparison",
-                                                               "convergence")]
+                                                               "convergence", "practical_comparison")]
     expected.append(out / "provenance.html")
     for path in expected:
         assert embedded.get(path.name) == path.read_bytes(), path.name

@@ -305,6 +305,13 @@ def test_evaluate_reads_snapshots_listed_in_stats(tmp_path):
     assert [c["counted_seconds"] for c in result["curve"]] == [0.06, 0.17]
     assert result["render_seconds"] == pytest.approx(0.17)
     assert json.loads((tmp_path / "metrics.json").read_text())["method"] == "m"
+    # What the tables need of the stats is kept: the budget (the counted spp leave the excluded passes out) and nee.
+    stats.update(budget={"seconds": 1, "pass_spp": 8, "exclude_passes": 1}, nee=True)
+    (tmp_path / "stats.json").write_text(json.dumps(stats))
+    kept = evaluation.evaluate_run(str(tmp_path / "image.exr"), str(tmp_path / "stats.json"),
+                                   str(tmp_path / "ref.exr"), str(tmp_path / "metrics.json"))["stats"]
+    assert kept["budget"]["exclude_passes"] == 1 and kept["nee"] is True
+    assert tables.runs_frame([{"mae": 0.1, "stats": kept}]).spp_counted.item() == 8
     # A listed name that leaves the render folder is refused.
     stats["snapshots"][0]["file"] = "../image_snap00008.exr"
     (tmp_path / "stats.json").write_text(json.dumps(stats))

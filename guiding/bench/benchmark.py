@@ -167,12 +167,13 @@ def breakdown_variants(method: str, guide) -> list[tuple[str, str, object]]:
 
 
 def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int = 12, pass_spp: int = PASS_SPP,
-              max_depth: int = MAX_DEPTH, breakdown: bool = True) -> tuple[pd.DataFrame, pd.DataFrame]:
+              max_depth: int = MAX_DEPTH, breakdown: bool = True, nee: bool = False) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Per scene and method: kernel time per spp (also as ratios to ``brdf`` and Mitsuba ``path`` timed in the
     same run), Python tracing per pass, compile time, guide update share, memory, hit rate, rays per second (and as
     a fraction of the ``trace-only`` kernel's), and what the guide skips: the share of vertices it guides and the
     memoised (cell, normal bin) pairs. With ``breakdown``, the cost breakdown of every guided method (timed in the
-    same interleaved run; see the module's docstring): returns (benchmark table, breakdown table)."""
+    same interleaved run; see the module's docstring): returns (benchmark table, breakdown table). With ``nee``,
+    every ``guided_path`` integrator (``brdf`` included) does next-event estimation, as ``path`` does."""
     from guiding.render.integrator import GuidedPathIntegrator
     from guiding.scenes import load_scene
 
@@ -185,6 +186,7 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
                        TRACE_ONLY: TraceOnlyIntegrator(max_depth)}
         props = mi.Properties()
         props["max_depth"] = max_depth
+        props["nee"] = nee
         stages = {}
         for method in dict.fromkeys(["brdf", *methods]):
             integrators[method] = GuidedPathIntegrator(props, guide=make_guide(method))

@@ -128,16 +128,20 @@ def _cost(run: _BenchRun) -> None:
     from guiding.bench.benchmark import benchmark, target_table, write_table
 
     args, tag = run.args, _tag(run.variant)
-    frame, breakdown = benchmark(run.scenes, run.methods, passes=args.passes, breakdown=not args.no_breakdown)
-    command = run.command("cost") + run.backend_options + (" --no-breakdown" if args.no_breakdown else "")
-    write_table(frame, run.out / f"benchmark_{tag}", "Cost per spp of every method vs `brdf` and Mitsuba `path` "
+    frame, breakdown = benchmark(run.scenes, run.methods, passes=args.passes, breakdown=not args.no_breakdown,
+                                 nee=args.nee)
+    command = (run.command("cost") + run.backend_options + (" --no-breakdown" if args.no_breakdown else "")
+               + (" --nee" if args.nee else ""))
+    name = f"benchmark_{tag}" + ("_nee" if args.nee else "")
+    write_table(frame, run.out / name, "Cost per spp of every method vs `brdf` and Mitsuba `path` "
+                + ("(every guided_path method, `brdf` included, with next-event estimation) " if args.nee else "") +
                 f"(same run, {args.passes} interleaved passes of 8 spp after 2 warm-up passes, max depth 16; "
                 "`trace-only`: the throughput limit, `share_of_trace_limit`: rays/s as a fraction of its)",
                 run.device, command, sections={"Targets": target_table(frame, tag, breakdown)})
     if not breakdown.empty:
-        write_table(breakdown, run.out / "cost_breakdown", "Cost breakdown of every guided method: kernel time per "
+        write_table(breakdown, run.out / ("cost_breakdown" + ("_nee" if args.nee else "")), "Cost breakdown of every guided method: kernel time per "
                     "spp with the parts of the bounce switched on one by one (same interleaved run as "
-                    f"benchmark_{tag}; `increment`: the stage's cost over the previous stage, the first over `brdf`; "
+                    f"{name}; `increment`: the stage's cost over the previous stage, the first over `brdf`; "
                     "partial stages are a benchmark instrument whose images are not meant to be correct)",
                     run.device, command)
         print(breakdown.to_string(index=False))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from dataclasses import dataclass
 
 from guiding.errors import GuidingError
 from guiding.experiments.sdtree_baseline import SCENE_STUDIES
@@ -35,6 +36,38 @@ def _positive_float(text: str) -> float:
     if not (value > 0 and math.isfinite(value)):   # inf would make an endless budget or an infinite resolution
         raise argparse.ArgumentTypeError(f"must be > 0 and finite, got {text}")
     return value
+
+
+#: What a demo entry's name ends with to render with next-event estimation (``ours+nee``).
+NEE_SUFFIX = "+nee"
+
+
+@dataclass(frozen=True)
+class DemoEntry:
+    """One render of the demo: a method name (resolved when its render's arguments are parsed) and whether it
+    renders with next-event estimation, written ``NAME+nee`` (Mitsuba's ``path`` always has it)."""
+
+    method: str
+    nee: bool = False
+
+    @property
+    def name(self) -> str:
+        """As written on the command line, and the name of the render's folder."""
+        return self.method + (NEE_SUFFIX if self.nee else "")
+
+    def render_args(self) -> list[str]:
+        return ["--method", self.method, *(["--nee"] if self.nee else [])]
+
+
+def _demo_entries(text: str) -> tuple[DemoEntry, ...]:
+    """``path,brdf,ours+nee`` -> the demo's entries, in order; an entry twice would render into one folder."""
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError("no method given")
+    twice = sorted({name for name in names if names.count(name) > 1})
+    if twice:
+        raise argparse.ArgumentTypeError(f"'{twice[0]}' is given twice")
+    return tuple(DemoEntry(name.removesuffix(NEE_SUFFIX), name.endswith(NEE_SUFFIX)) for name in names)
 
 
 def _memory_size(text: str) -> int:
@@ -80,6 +113,8 @@ def _add_render(commands) -> None:
     budget = render.add_mutually_exclusive_group(required=True)
     budget.add_argument("--spp", type=_positive_int, help="samples per pixel budget")
     budget.add_argument("--seconds", type=_positive_float, help="time budget in seconds")
+    render.add_argument("--nee", action="store_true",
+                        help="next-event estimation with MIS against the method's own density (`path` always has it)")
     render.add_argument("--exclude-passes", type=int, default=0,
                         help="leading passes not counted against a seconds budget (default 0)")
     render.add_argument("--fixed-passes", action="store_true",
@@ -139,17 +174,30 @@ def _add_bench(commands) -> None:
     bench.add_argument("--methods", help="methods timed against brdf (comma-separated; default: cost: every kind, "
                        "pass-schedule: brdf, ours, ours-plus, sdtree; gathers: ours, sdtree)")
     bench.add_argument("--out", help="output folder (default results/bench, results/pass_schedule)")
+    bench.add_argument("--nee", action="store_true",
+                       help="cost: every guided_path method, brdf included, with next-event estimation (as path)")
     bench.add_argument("--no-breakdown", action="store_true",
                        help="skip the cost breakdown (the guided methods' stages, results/bench/cost_breakdown.md)")
     _add_backend_options(bench)
 
 
+#: The demo's methods: the practical answer (Mitsuba's path against the guided methods with next-event
+#: estimation) beside the paper's comparison (BSDF sampling against ours, both without).
+DEMO_METHODS = "path,brdf,ours,ours+nee,sdtree+nee"
+
+
 def _add_demo_and_validate(commands) -> None:
-    demo = commands.add_parser("demo", help="the main job: reference, then each method at equal spp, then MAE")
+    demo = commands.add_parser("demo", help="the main job: a reference, then Mitsuba's path, BSDF sampling and the "
+                               "guided methods, with and without next-event estimation, at equal time; their errors")
     demo.add_argument("--scene", default="door-ajar")
     demo.add_argument("--scale", type=_positive_float, default=0.5)
-    demo.add_argument("--methods", default="brdf,ours", help="comma-separated method names (default brdf,ours)")
-    demo.add_argument("--spp", type=_positive_int, default=256, help="spp of each method (default 256)")
+    demo.add_argument("--methods", type=_demo_entries, default=DEMO_METHODS,
+                      help="comma-separated method names, each with +nee to render it with next-event estimation "
+                      f"(default {DEMO_METHODS}; `path` is Mitsuba's own path tracer, which always has it)")
+    budget = demo.add_mutually_exclusive_group()
+    budget.add_argument("--seconds", type=_positive_float, default=5.0,
+                        help="seconds of each method, compilation excluded (default %(default)g: equal time)")
+    budget.add_argument("--spp", type=_positive_int, help="spp of each method instead (equal spp)")
     demo.add_argument("--reference-spp", type=_positive_int, default=4096)
     demo.add_argument("--out", default="results/demo")
     _add_backend_options(demo)

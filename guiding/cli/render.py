@@ -16,6 +16,12 @@ from guiding.output_dirs import output_dir, prepare_output_dir
 from guiding.provenance import render_provenance
 
 
+def samples_emitters(integrator) -> bool:
+    """Whether a render's integrator does next-event estimation: ``guided_path`` with ``nee``, and Mitsuba's ``path``
+    (the only Mitsuba integrator the commands render with)."""
+    return bool(getattr(integrator, "nee", True))
+
+
 def _image_metadata(scene_name: str, args, method: str, integrator, budget, provenance: dict, combine: str) -> dict:
     """What every EXR file of a render carries in its header (imageio.write_exr; the spp are added per file): the
     method and its guide's parameters, the render's parameters (``combine``: its final-image mode), seed, scene,
@@ -23,7 +29,8 @@ def _image_metadata(scene_name: str, args, method: str, integrator, budget, prov
     from guiding.provenance import software_versions
 
     guide = getattr(integrator, "guide", None)
-    parameters = {"budget": asdict(budget), "max_depth": args.max_depth, "scale": args.scale, "combine": combine}
+    parameters = {"budget": asdict(budget), "max_depth": args.max_depth, "scale": args.scale, "combine": combine,
+                  "nee": samples_emitters(integrator)}
     return {"method": method, "scene": scene_name, "seed": args.seed, "parameters": parameters,
             "guide": {k: v for k, v in (guide.stats() if guide is not None else {}).items()
                       if not isinstance(v, (dict, list))},
@@ -62,6 +69,7 @@ def _render_to(out: Path, scene_name: str, args, integrator, method: str, budget
     film_size = [int(v) for v in scene.sensors()[0].film().size()]
     stats = {"scene": scene_name, "scene_file": str(find_scene(scene_name, args.scene_dir)), "scale": args.scale,
              "resolution": film_size, "method": method, "seed": args.seed, "max_depth": args.max_depth,
+             "nee": samples_emitters(integrator),
              **result.summary(), "guide": getattr(getattr(integrator, "guide", None), "stats", dict)(),
              "started": started, "finished": finished, "provenance": provenance,
              "per_pass": [asdict(p) for p in result.passes]}
@@ -90,18 +98,15 @@ def command_render(args) -> None:
     find_scene(args.scene, args.scene_dir)
     method.check_memory(args.memory_limit)
     variant = set_variant(args.variant, args.threads)
-    guide = method.build(args.memory_limit)
-    if args.save_guide and not guide.records():
-        raise GuidingError(f"--save-guide: method '{method.label}' learns nothing to save")
-    from guiding.render.integrator import GuidedPathIntegrator
-    import mitsuba as mi
+    from guiding.render.integrator import integrator_for
 
-    props = mi.Properties()
-    props["max_depth"] = args.max_depth
-    integrator = GuidedPathIntegrator(props, guide=guide)
+    integrator = integrator_for(method, args.max_depth, args.nee, args.memory_limit)
+    guide = getattr(integrator, "guide", None)
+    if args.save_guide and (guide is None or not guide.records()):
+        raise GuidingError(f"--save-guide: method '{method.label}' learns nothing to save")
     with output_dir(args.out) as out:
         stats = _render_to(out, args.scene, args, integrator, method.label, budget, variant)
-    print(f"{method.label} on {args.scene}: {stats['spp']} spp in {stats['seconds']:.2f} s "
+    print(f"{method.label}{' with nee' if args.nee else ''} on {args.scene}: {stats['spp']} spp in {stats['seconds']:.2f} s "
           f"(compile {stats['compile_seconds']:.2f} s), hit rate {stats['hit_rate']:.4f} -> {out}")
 
 
@@ -159,37 +164,54 @@ def command_show_guide(args) -> None:
     print(f"{title} -> {out}")
 
 
+def _demo_row(render, reference: Path) -> dict:
+    """One line of the demo's summary: what ``render`` (its parsed arguments) made, against ``reference``."""
+    from guiding.imageio import read_exr
+    from guiding.metrics import evaluate
+
+    target = Path(render.out)
+    stats = json.loads((target / "stats.json").read_text())
+    errors = evaluate(read_exr(target / "image.exr"), read_exr(reference / "image.exr"))
+    return {"method": render.method.label, "nee": stats["nee"], "spp": stats["spp"],
+            "seconds": stats["budget_seconds_counted"], "mae": errors["mae"], "relmse": errors["relmse"]}
+
+
 def command_demo(args) -> None:
-    """Reference (cached) + each method at equal spp on one scene, and a Markdown table of the errors."""
+    """A reference (cached per scene, scale and spp), then each of ``args.methods``
+    (:class:`~guiding.cli.parser.DemoEntry` values) under one budget, equal time by default, and a Markdown table of
+    their errors (``summary.md``) with each method's efficiency relative to Mitsuba's ``path`` (its MAE²·t over the
+    method's, t the seconds counted, compilation excluded): the practical question first."""
     from guiding.backend import set_variant
     from guiding.scenes import find_scene
 
     find_scene(args.scene)
     variant = set_variant(args.variant, args.threads)
     common = ["--scene", args.scene, "--scale", str(args.scale), "--variant", variant]
+    budget = ["--spp", str(args.spp)] if args.spp else ["--seconds", f"{args.seconds:g}"]
     # Every render's arguments (so its method) are parsed before anything is written: bad input writes nothing.
-    renders = [parse_args(["render", *common, "--method", name, "--spp", str(args.spp),
-                           "--out", str(Path(args.out) / name)]) for name in args.methods.split(",") if name]
+    renders = [parse_args(["render", *common, *entry.render_args(), *budget,
+                           "--out", str(Path(args.out) / entry.name)]) for entry in args.methods]
     out = prepare_output_dir(args.out)
     import pandas as pd
 
-    from guiding.imageio import read_exr
-    from guiding.metrics import evaluate
-
-    reference = out / f"reference-{args.reference_spp}spp"
+    reference = out / f"reference-{Path(args.scene).stem}-x{args.scale:g}-{args.reference_spp}spp"
     if not (reference / "stats.json").exists():
         command_reference(parse_args(["reference", *common, "--spp", str(args.reference_spp),
                                       "--out", str(reference)]))
     rows = []
     for render in renders:
         command_render(render)
-        target = Path(render.out)
-        stats = json.loads((target / "stats.json").read_text())
-        errors = evaluate(read_exr(target / "image.exr"), read_exr(reference / "image.exr"))
-        rows.append({"method": render.method.label, "spp": stats["spp"], "seconds": stats["seconds"],
-                     "hit_rate": stats["hit_rate"], "mae": errors["mae"], "relmse": errors["relmse"]})
-    table = pd.DataFrame(rows).to_markdown(index=False, floatfmt=".4g")
-    (out / "summary.md").write_text(f"# {args.scene} at scale {args.scale}, {args.spp} spp\n\n{table}\n")
+        rows.append(_demo_row(render, reference))
+    frame = pd.DataFrame(rows)
+    cost = frame["mae"] ** 2 * frame["seconds"]
+    if (frame["method"] == "path").any():
+        frame["efficiency_vs_path"] = cost[frame["method"] == "path"].iloc[0] / cost
+    table = frame.to_markdown(index=False, floatfmt=".4g")
+    each = f"{args.spp} spp" if args.spp else f"{args.seconds:g} s"
+    (out / "summary.md").write_text(
+        f"# {args.scene} at scale {args.scale}, {each} each\n\n{table}\n\nseconds: rendering counted against the "
+        "budget (compilation excluded); nee: next-event estimation (Mitsuba's `path` always has it); "
+        "efficiency_vs_path: path's MAE²·seconds over the method's (above 1: path's error in less time).\n")
     print(table)
 
 

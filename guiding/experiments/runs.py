@@ -5,7 +5,8 @@ A run's method is resolved once, here, into a typed :class:`~guiding.guides.meth
 ``methods`` with its ``set`` mapping (``{method: ours, set: {bsdf_fraction: 0.0}}``), Table 1's method with each cell's
 ``{spatial_resolution: S, directional_resolution: D}``, Table 2's ``{rule}-{sampler}`` grid methods. The render
 gets it back as ``--method NAME --set FIELD=VALUE ...``; the run's name in paths and tables is a label, never read
-back.
+back. An experiment with ``nee: true`` renders every method with next-event estimation (``--nee``; Mitsuba's
+``path``, a method too, always has it).
 """
 
 from __future__ import annotations
@@ -18,9 +19,11 @@ from guiding.experiments.configuration import ConfigError
 from guiding.guides.methods import (BadSetting, Method, UnknownMethod, grid_method_name, resolve, setting_text,
                                     unknown_method)
 
-EXPERIMENTS = ("table1", "table2", "equal_time", "convergence")
+EXPERIMENTS = ("table1", "table2", "equal_time", "convergence", "practical")
 #: Experiments whose renders are timed by default (they run alone on the machine).
-TIMED_BY_DEFAULT = {"equal_time", "convergence"}
+TIMED_BY_DEFAULT = {"equal_time", "convergence", "practical"}
+#: What a run's label gets where its render does next-event estimation that the method itself does not imply.
+NEE_LABEL_SUFFIX = " + NEE"
 
 RULE_LABELS = {"expected_sarsa": "Expected SARSA", "mc": "MC", "sarsa": "SARSA"}
 SAMPLER_LABELS = {"sphere_inv": "Sphere Inv", "hemi_inv": "Hemi Inv", "hemi_rej": "Hemi Rej",
@@ -58,6 +61,12 @@ class Run:
     scale: float
     timed: bool
     coords: tuple = ()        # (("S", 8), ("D", 16)) or (("rule", "mc"), ("sampler", "hemi_inv")) or (("extra", True),)
+    nee: bool = False         # the experiment asks for next-event estimation (--nee)
+
+    @property
+    def samples_emitters(self) -> bool:
+        """Whether the render does next-event estimation: asked for, or Mitsuba's ``path``, which always does."""
+        return self.nee or self.spec.mitsuba_integrator is not None
 
     @property
     def key(self) -> tuple:
@@ -67,15 +76,18 @@ class Run:
         return f"{out}/renders/{self.experiment}/{self.scene}/{self.method}/{self.budget.tag}/seed{self.seed}"
 
     def method_args(self) -> list[str]:
-        """The method as `python -m guiding render` takes it: ``--method NAME`` and a ``--set`` per setting."""
+        """The method as `python -m guiding render` takes it: ``--method NAME``, a ``--set`` per setting, and
+        ``--nee`` where the experiment asks for it and the method is guided (Mitsuba's ``path`` always has it)."""
         settings = [["--set", f"{field}={setting_text(value)}"] for field, value in self.spec.settings]
-        return ["--method", self.spec.name, *itertools.chain.from_iterable(settings)]
+        nee = ["--nee"] if self.nee and self.spec.mitsuba_integrator is None else []
+        return ["--method", self.spec.name, *itertools.chain.from_iterable(settings), *nee]
 
     def info(self) -> dict:
         """What metrics.json records about the run (with the budget flattened); ``cli_method`` is the method's
-        label, as the render's stats.json records it."""
+        label, as the render's stats.json records it; ``nee``: whether the render does next-event estimation."""
         return {"experiment": self.experiment, "scene": self.scene, "method": self.method,
-                "cli_method": self.spec.label, "label": self.label, "seed": self.seed, "budget": self.budget.tag,
+                "cli_method": self.spec.label, "nee": self.samples_emitters, "label": self.label, "seed": self.seed,
+                "budget": self.budget.tag,
                 "budget_kind": self.budget.kind, "budget_value": self.budget.value, "scale": self.scale,
                 "timed": self.timed, **dict(self.coords)}
 
@@ -163,6 +175,10 @@ def expand(config: dict) -> tuple[list[Run], dict[tuple[str, float], Reference]]
             raise ConfigError(f"{where}.budget: '{spec['budget']}' has several values; only the convergence "
                               "experiment takes a list")
         entries = _method_entries(config, experiment)
+        nee = spec.get("nee", False)
+        if nee:
+            entries = [(name, method, label if method.mitsuba_integrator else label + NEE_LABEL_SUFFIX, coords)
+                       for name, method, label, coords in entries]
         names = [e[0] for e in entries]
         duplicates = sorted({n for n in names if names.count(n) > 1})
         if duplicates:
@@ -178,7 +194,7 @@ def expand(config: dict) -> tuple[list[Run], dict[tuple[str, float], Reference]]
             for (name, method, label, coords), point, seed in itertools.product(entries, points,
                                                                                  spec.get("seeds", config["seeds"])):
                 runs.append(Run(experiment, scene, name, method, label, seed, point, scale,
-                                experiment_timed(config, experiment), coords))
+                                experiment_timed(config, experiment), coords, nee))
     return runs, references
 
 
@@ -197,4 +213,4 @@ def missing_scenes(config: dict, runs: list[Run]) -> list[str]:
 
 def unknown_methods(runs: list[Run]) -> list[str]:
     """Methods of the runs that this checkout does not know."""
-    return sorted({r.spec.name for r in runs if r.spec.guide is None})
+    return sorted({r.spec.name for r in runs if not r.spec.known})

@@ -3,8 +3,8 @@
 Input: the metrics.json of every run of one experiment (written by ``python -m guiding.experiments.harness evaluate``; each
 holds the run, its metrics, its stats and its provenance) and the experiment's layout (``Plan.experiment_spec``).
 Output: ``{experiment}.csv`` (one row per cell: the mean over seeds, and the paper's number), ``{experiment}.md``
-(the paper's layout, each cell "ours / paper") and ``{experiment}_runs.csv`` (one row per render, with the machine,
-device and versions it ran on).
+(the paper's layout, each cell "ours / paper"; the practical experiment: each method against Mitsuba's ``path``)
+and ``{experiment}_runs.csv`` (one row per render, with the machine, device and versions it ran on).
 
 The published numbers (method.md §8) come from other scenes or resolutions, an 8-bit reference and the authors'
 GPU; they are shown for orientation, not as a target to match digit for digit.
@@ -61,8 +61,8 @@ PAPER_EQUAL_TIME = {
 
 #: The metrics of every render (guiding.metrics.evaluate) beside the paper's MAE, in the order the CSVs show them.
 OTHER_METRICS = [m for m in METRICS if m != "mae"]
-RUN_COLUMNS = ["experiment", "scene", "method", "cli_method", "label", "seed", "budget", "scale", "resolution", "spp",
-               "seconds", "render_seconds", "compile_seconds", "budget_seconds_counted", "hit_rate", "mae",
+RUN_COLUMNS = ["experiment", "scene", "method", "cli_method", "nee", "label", "seed", "budget", "scale", "resolution",
+               "spp", "seconds", "render_seconds", "compile_seconds", "budget_seconds_counted", "hit_rate", "mae",
                *OTHER_METRICS, "nonfinite_pixels", "host", "device", "variant", "threads", "mitsuba", "drjit", "date"]
 
 
@@ -101,6 +101,8 @@ def runs_frame(rows: list[dict]) -> pd.DataFrame:
                   **{k: prov.get(k) for k in ("host", "device", "variant", "threads", "mitsuba", "drjit", "date")}}
         records.append(record)
     frame = pd.DataFrame.from_records(records)
+    if "nee" not in frame:      # renders evaluated before next-event estimation existed did without it
+        frame["nee"] = False
     # Renders evaluated before a metric existed have no value for it: NaN, like a metric of non-finite pixels (null).
     frame = frame.reindex(columns=[*frame.columns, *(m for m in METRICS if m not in frame.columns)])
     for column in METRICS:
@@ -117,27 +119,29 @@ def _counted_spp(stats: dict):
     return spp - (budget.get("exclude_passes") or 0) * (budget.get("pass_spp") or 0)
 
 
-def cells_frame(runs: pd.DataFrame, experiment: str, keys: list[str]) -> pd.DataFrame:
+def cells_frame(runs: pd.DataFrame, experiment: str, keys: list[str], baseline: str = "brdf") -> pd.DataFrame:
     """Mean over seeds per cell (``keys``), with the spread, the seed count, the paper's number and the efficiency
-    1/(MAE²·t) relative to BRDF's in the same scene (and budget): t is the counted seconds of a timed render, the
+    1/(MAE²·t) relative to the ``baseline`` method's (the cell that rendered it, by its command-line method) in the
+    same scene (and budget), as ``efficiency_vs_{baseline}``: t is the counted seconds of a timed render, the
     render + update seconds of an untimed one."""
     runs = runs.assign(cost_seconds=runs["budget_seconds_counted"].fillna(runs["render_seconds"]))
     grouped = runs.groupby(keys, sort=False, dropna=False)
-    cells = grouped.agg(mae=("mae", "mean"), mae_std=("mae", "std"),
+    cells = grouped.agg(mae=("mae", "mean"), mae_std=("mae", "std"), relmse_std=("relmse", "std"),
                         **{metric: (metric, "mean") for metric in OTHER_METRICS}, seeds=("seed", "count"),
                         spp=("spp", "mean"), spp_counted=("spp_counted", "mean"),
                         render_seconds=("render_seconds", "mean"), cost_seconds=("cost_seconds", "mean"),
                         hit_rate=("hit_rate", "mean"), nonfinite_pixels=("nonfinite_pixels", "sum"),
                         device=("device", _joined)).reset_index()
-    efficiency = 1.0 / (cells["mae"] ** 2 * cells["cost_seconds"])
-    peers = [k for k in keys if k != "method"]          # the cells BRDF's is compared with: same scene (and budget)
-    brdf = cells.loc[cells["method"] == "brdf", peers].assign(brdf_efficiency=efficiency)
-    baseline = cells[peers].merge(brdf, on=peers, how="left")["brdf_efficiency"].to_numpy()   # NaN: no BRDF
-    cells["efficiency_vs_brdf"] = efficiency.to_numpy() / baseline
     first = grouped.first().reset_index()
-    for column in ("cli_method", "label", "S", "D", "rule", "sampler", "extra"):
+    for column in ("cli_method", "nee", "label", "S", "D", "rule", "sampler", "extra"):
         if column in first and column not in cells:
             cells[column] = first[column].values
+    efficiency = 1.0 / (cells["mae"] ** 2 * cells["cost_seconds"])
+    peers = [k for k in keys if k != "method"]       # the cells the baseline's is compared with: same scene (and budget)
+    reference = cells.loc[cells["cli_method"] == baseline, peers].assign(baseline_efficiency=efficiency)
+    reference = reference.drop_duplicates(peers)
+    per_cell = cells[peers].merge(reference, on=peers, how="left")["baseline_efficiency"].to_numpy()   # NaN: none
+    cells[f"efficiency_vs_{baseline}"] = efficiency.to_numpy() / per_cell
     cells["paper_mae"] = [paper_value(experiment, row) for row in cells.to_dict("records")]
     return cells
 
@@ -205,8 +209,9 @@ def _header(spec: dict, runs: pd.DataFrame, title: str) -> str:
     return (f"# {title}\n\nBudget: {_budget_text(spec)}; {timing}. "
             f"Resolutions: {scales}. MAE of the tone-mapped images against a float reference (mean over "
             f"{runs['seed'].nunique()} seed(s)). "
-            + ("" if spec["name"] == "convergence" else "Each cell: **ours / paper** (— where the paper has no "
-               "number; the paper's scenes, resolutions and 8-bit reference differ)."))
+            + ("Next-event estimation in every render. " if spec.get("nee") else "")
+            + ("" if spec["name"] in ("convergence", "practical") else "Each cell: **ours / paper** (— where the "
+               "paper has no number; the paper's scenes, resolutions and 8-bit reference differ)."))
 
 
 def table1(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
@@ -217,8 +222,8 @@ def table1(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
         rows = [[f"**{S}**", *[ours_paper(lookup.get((S, D))) for D in spec["D"]]] for S in spec["S"]]
         parts.append(f"## {scene}\n\n" + markdown_table(["S \\ D", *map(str, spec["D"])], rows))
     parts.append(provenance_note(runs, spec["timed"]))
-    columns = ["scene", "S", "D", "method", "cli_method", "mae", "mae_std", "seeds", "paper_mae", *OTHER_METRICS,
-               "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
+    columns = ["scene", "S", "D", "method", "cli_method", "nee", "mae", "mae_std", "seeds", "paper_mae",
+               *OTHER_METRICS, "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
     return cells[columns], "\n\n".join(parts) + "\n"
 
 
@@ -248,8 +253,9 @@ def table2(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
     for column in ("rule", "sampler", "extra"):
         if column not in cells:
             cells[column] = None
-    columns = ["scene", "rule", "sampler", "method", "cli_method", "label", "mae", "mae_std", "seeds", "paper_mae",
-               "efficiency_vs_brdf", *OTHER_METRICS, "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
+    columns = ["scene", "rule", "sampler", "method", "cli_method", "nee", "label", "mae", "mae_std", "seeds",
+               "paper_mae", "efficiency_vs_brdf", *OTHER_METRICS, "spp", "render_seconds", "hit_rate",
+               "nonfinite_pixels", "device"]
     return cells[columns], "\n\n".join(parts) + "\n"
 
 
@@ -278,8 +284,9 @@ def equal_time(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
         "whole render (compilation excluded), hit rate:",
         markdown_table(["scene", *labels], spp_rows),
         provenance_note(runs, spec["timed"])]) + "\n"
-    columns = ["scene", "method", "cli_method", "label", "mae", "mae_std", "seeds", "paper_mae", "efficiency_vs_brdf",
-               *OTHER_METRICS, "spp", "spp_counted", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
+    columns = ["scene", "method", "cli_method", "nee", "label", "mae", "mae_std", "seeds", "paper_mae",
+               "efficiency_vs_brdf", *OTHER_METRICS, "spp", "spp_counted", "render_seconds", "hit_rate",
+               "nonfinite_pixels", "device"]
     return cells[columns], text
 
 
@@ -320,12 +327,64 @@ def convergence(spec: dict, runs: pd.DataFrame, points: pd.DataFrame | None = No
         "the spp columns are points on one render's curve.",
         markdown_table(["scene", "method", *budgets], rows),
         provenance_note(runs, spec["timed"])]) + "\n"
-    columns = ["scene", "method", "cli_method", "label", "budget", "mae", "mae_std", "seeds", *OTHER_METRICS,
+    columns = ["scene", "method", "cli_method", "nee", "label", "budget", "mae", "mae_std", "seeds", *OTHER_METRICS,
                "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
     return cells[columns], text
 
 
-BUILDERS = {"table1": table1, "table2": table2, "equal_time": equal_time, "convergence": convergence}
+#: What the practical table says its efficiency is (docs/harness.md defines it the same way).
+PRACTICAL_EFFICIENCY = ("Efficiency relative to Mitsuba's `path`: its MAE²·t over the method's, t the counted "
+                        "seconds (the excluded leading passes not included); at equal time this is (MAE of path / MAE "
+                        "of the method)². Above 1: the method reaches path's error in less time (2× takes half the "
+                        "time). Last row: the geometric mean over the scenes.")
+
+
+def _mean_spread(cell: dict | None, metric: str) -> str:
+    """A cell's mean of ``metric`` over seeds with its standard deviation ("n/a" where a pixel was not finite)."""
+    if cell is None:
+        return "(not run)"
+    if math.isnan(cell[metric]):
+        return f"n/a ({int(cell['nonfinite_pixels'])} non-finite px)"
+    spread = cell.get(f"{metric}_std", math.nan)
+    return fmt(cell[metric]) + (f" ± {fmt(spread, 2)}" if cell.get("seeds", 1) > 1 else "")
+
+
+def practical(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
+    """Each method against Mitsuba's ``path`` at equal time, per scene: the efficiency relative to ``path``
+    (:data:`PRACTICAL_EFFICIENCY`), MAE and relMSE (mean ± standard deviation over seeds), counted spp."""
+    cells = cells_frame(runs, "practical", ["scene", "method"], baseline="path")
+    labels = runs.groupby("method", sort=False)["label"].first().to_dict()
+    header = ["scene", *[labels.get(m, spec["labels"].get(m, m)) for m in spec["methods"]]]
+    lookup = {(c["scene"], c["method"]): c for c in cells.to_dict("records")}
+
+    def rows(show) -> list[list[str]]:
+        return [[f"**{scene}**", *[show(lookup.get((scene, m))) for m in spec["methods"]]] for scene in spec["scenes"]]
+
+    def times(cell: dict | None) -> str:
+        return "(not run)" if cell is None else f"{fmt(cell['efficiency_vs_path'], 3)}×"
+
+    efficiency = cells.set_index("method")["efficiency_vs_path"]
+    overall = ["**geometric mean**", *[fmt(float(np.exp(np.log(efficiency[[m]]).mean())), 3) + "×"
+                                       if m in efficiency.index else "(not run)" for m in spec["methods"]]]
+    text = "\n\n".join([
+        _header(spec, runs, "Practical: each method against Mitsuba's path at equal time"),
+        PRACTICAL_EFFICIENCY, markdown_table(header, rows(times) + [overall]),
+        "MAE (tone-mapped; mean ± standard deviation over seeds):",
+        markdown_table(header, rows(lambda c: _mean_spread(c, "mae"))),
+        "relMSE (mean ± standard deviation over seeds):",
+        markdown_table(header, rows(lambda c: _mean_spread(c, "relmse"))),
+        "Counted samples per pixel (mean over seeds) in the counted seconds:",
+        markdown_table(header, rows(lambda c: "(not run)" if c is None else
+                                    f"{fmt(c['spp_counted'], 6)} spp, {fmt(c['cost_seconds'], 3)} s")),
+        provenance_note(runs, spec["timed"])]) + "\n"
+    columns = ["scene", "method", "cli_method", "nee", "label", "efficiency_vs_path", "mae", "mae_std", "relmse",
+               "relmse_std", "seeds", "spp_counted", "cost_seconds", *[m for m in OTHER_METRICS if m != "relmse"],
+               "spp", "render_seconds", "hit_rate", "nonfinite_pixels", "device"]
+    return cells.reindex(columns=columns), text
+
+
+BUILDERS = {"table1": table1, "table2": table2, "equal_time": equal_time, "convergence": convergence,
+            "practical": practical}
 
 
 def build(spec: dict, rows: list[dict]) -> tuple[pd.DataFrame, str, pd.DataFrame]:

@@ -68,13 +68,20 @@ RESOLUTION_SUFFIXES = {"spatial_resolution": "S", "directional_resolution": "D"}
 class Method:
     """A method: its registered ``name``, the ``guide`` factory that builds its guide from (parameters, label), the
     guide's typed ``parameters`` (None for BSDF sampling), and the ``settings`` changed from the registered ones
-    ((field, value) pairs in the parameters' field order). ``guide`` is None for a name this checkout does not know
+    ((field, value) pairs in the parameters' field order). A method that is another Mitsuba integrator (``path``)
+    names it in ``mitsuba_integrator`` and has no guide. ``guide`` is None for a name this checkout does not know
     (:func:`unknown_method`): it has a label, and refuses to build."""
 
     name: str
     guide: Callable[[object, str], Guide] | None
     parameters: object = None
     settings: tuple[tuple[str, object], ...] = ()
+    mitsuba_integrator: str | None = None
+
+    @property
+    def known(self) -> bool:
+        """Whether this checkout can render the method."""
+        return self.guide is not None or self.mitsuba_integrator is not None
 
     @property
     def label(self) -> str:
@@ -144,7 +151,8 @@ class Method:
         """A fresh guide; refused (GuidingError) if its tables would exceed ``memory_limit`` (default:
         :func:`memory_limit`)."""
         if self.guide is None:
-            raise UnknownMethod(_unknown_message(self.name))
+            raise UnknownMethod(_unknown_message(self.name) if not self.known else
+                                f"method '{self.name}' is Mitsuba's {self.mitsuba_integrator} integrator: it has no guide")
         left = self.check_memory(memory_limit)
         guide = self.guide(self.parameters, self.label)
         if getattr(guide, "record_table", None) is not None:     # a grid guide (as guide_state tells them apart)
@@ -272,6 +280,9 @@ _REGISTERED = {
 }
 METHODS: dict[str, Method] = {name: Method(name, guide, parameters)
                               for name, (guide, parameters) in _REGISTERED.items()}
+#: Mitsuba's own path tracer (next-event estimation and MIS), the renderer a Mitsuba user has: rendered by it, not
+#: by ``guided_path``, with the same budgets, so that tables compare with it directly.
+METHODS["path"] = Method("path", None, mitsuba_integrator="path")
 _SUFFIXED_NAME = re.compile(r"^(?P<base>.+?)(?:-S(?P<S>\d+))?(?:-D(?P<D>\d+))?$")
 
 

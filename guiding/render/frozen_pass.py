@@ -106,7 +106,8 @@ class FrozenPasses:
         """One pass of ``spp`` samples per pixel of ``sensor`` with sampler seed ``seed``."""
         integrator = self._integrator()
         guide = integrator.path_guide
-        key = (guide.trace_key(), integrator.max_depth, integrator.rr_depth, integrator.rr_min,
+        key = (guide.trace_key(), integrator.max_depth, integrator.rr_depth, integrator.rr_min, integrator.nee,
+               integrator.learn_nee_light,
                tuple(sensor.film().crop_size()))     # the paths' width is a literal of the kernel
         # No garbage collection inside: Dr.Jit aborts when a collection frees another frozen function's recordings
         # in the middle of a recording, and a reference cycle anywhere in the process may hold one.

@@ -16,9 +16,12 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from guiding.errors import GuidingError
 from guiding.guides import Guide
 from guiding.guides.methods import make_guide
 from guiding.render import defaults
+from guiding.render.emitter_sampling import (NoPreviousVertex, PreviousVertex, hit_weight, sample_emitter,
+                                             unsampleable_emitters)
 from guiding.render.frozen_pass import FrozenPasses, recordable
 from guiding.render.progressive import Budget, render
 
@@ -38,6 +41,13 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
       ``seconds`` (float, 0): when positive, ``mi.render`` renders for this many seconds instead of ``spp``.
       ``freeze`` (bool, true): passes after the first of each configuration replay the path loop's recorded
         kernels instead of tracing it again (:mod:`guiding.render.frozen_pass`); false traces every pass.
+      ``nee`` (bool, false): next-event estimation: at every vertex with a smooth BSDF component, one emitter
+        sample, weighted against the guide's own density by the power heuristic (as Mitsuba's ``path``;
+        :mod:`guiding.render.emitter_sampling`); false is the paper's protocol (emitters found only by sampled
+        directions).
+      ``learn_nee_light`` (bool, true): with ``nee``, the guide learns the full incident radiance its sampled
+        directions bring back, light that emitter sampling also finds included; false: only the share of emission
+        that next-event estimation leaves to sampled directions (their MIS weight).
       ``statistics`` (bool, false): grid methods only: the guide counts guided vertices, proposals and acceptances
         per pass (``guided_samples``, ``acceptance_rate``, … in the pass statistics; off by default, they cost
         atomics on every bounce).
@@ -57,6 +67,8 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         self.pass_spp = props.get("pass_spp", defaults.PASS_SPP)
         self.seconds = props.get("seconds", 0.0)
         self.growing_passes = props.get("growing_passes", True)
+        self.nee = props.get("nee", False)
+        self.learn_nee_light = props.get("learn_nee_light", True)
         if self.max_depth < 1:
             raise ValueError(f"max_depth must be >= 1, got {self.max_depth}")
         if self.pass_spp < 1:
@@ -98,7 +110,14 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     def prepare(self, scene: mi.Scene) -> None:
         """Before the first pass on ``scene``: the guide allocates its tables; and where no BSDF of the scene is one
         the guide guides, the passes trace plain BSDF sampling, without the guide's code (masked off at every
-        vertex, it would still cost every bounce). The passes on ``scene`` are frozen from here on (``freeze``)."""
+        vertex, it would still cost every bounce). The passes on ``scene`` are frozen from here on (``freeze``).
+        With ``nee``, a scene without emitters, or with one that emitter sampling cannot sample
+        (:func:`~guiding.render.emitter_sampling.unsampleable_emitters`), is refused (GuidingError, one line)."""
+        if self.nee and not scene.emitters():
+            raise GuidingError("nee samples emitters, and this scene has none: render it without nee")
+        unsampleable = unsampleable_emitters(scene) if self.nee else []
+        if unsampleable:
+            raise GuidingError(f"nee cannot sample the emitter {'; '.join(unsampleable)}: render it without nee")
         self.guide.prepare(scene)
         self.path_guide = self.guide if self.guide.guides_any(scene) else _BSDF_SAMPLING
         self.frozen_passes = FrozenPasses(self, scene, _PassRenderer) if self.freeze and recordable(scene) else None
@@ -130,6 +149,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         active = dr.full(mi.Bool, True, dr.width(ray.o)) & active
         started = mi.Bool(active)     # The lanes that trace a path (for the hit rate)
         path_state = guide.new_paths(dr.width(ray.o), self.max_depth)
+        previous = PreviousVertex.camera(dr.width(ray.o)) if self.nee else NoPreviousVertex()
 
         while dr.hint(active, max_iterations=self.max_depth, label="Guided path tracer"):
             si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0))
@@ -137,14 +157,25 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
 
             # ----------------------------- Emission -----------------------------
             emitted = si.emitter(scene).eval(si, active)
-            L += β * emitted
+            if dr.hint(self.nee, mode="scalar"):
+                # Emission found by a sampled direction shares its weight with the emitter sample that could find it.
+                shared = hit_weight(scene, si, previous, active)
+                L += β * shared * emitted
+                if dr.hint(not self.learn_nee_light, mode="scalar"):
+                    emitted = shared * emitted    # the guide learns only what next-event estimation leaves to it
+            else:
+                L += β * emitted
 
             # ------------------------ Stopping criterion ------------------------
             depth[si.is_valid()] += 1
             continues = active & si.is_valid() & (depth < self.max_depth)
 
-            # ------------------- Direction sampling (the guide) -------------------
+            # ------------------ Emitter sampling (next-event estimation) ------------------
             bsdf = si.bsdf(ray)
+            if dr.hint(self.nee, mode="scalar"):
+                L += β * sample_emitter(scene, sampler, si, bsdf, bsdf_ctx, guide, continues).contribution
+
+            # ------------------- Direction sampling (the guide) -------------------
             vertex = guide.locate(si, bsdf, continues)
             bs, weight = guide.sample(scene, sampler, si, bsdf, bsdf_ctx, continues, vertex)
             weight = dr.select(continues, weight, 0)
@@ -162,6 +193,9 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
                 path_state = guide.record(path_state, si, emitted, bs, weight, continues, active, vertex)
 
             # --------------------------- Next segment ---------------------------
+            if dr.hint(self.nee, mode="scalar"):
+                previous = PreviousVertex(mi.Interaction3f(si), bs.pdf,
+                                          mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
             β *= weight
             ray = si.spawn_ray(si.to_world(bs.wo))
             active = continues
@@ -177,7 +211,8 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
 
     def to_string(self) -> str:
         return (f"GuidedPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
-                f"pass_spp={self.pass_spp}, growing_passes={self.growing_passes}, guide={self.guide.name}]")
+                f"pass_spp={self.pass_spp}, growing_passes={self.growing_passes}, nee={self.nee}, "
+                f"guide={self.guide.name}]")
 
 
 class _PassRenderer(mi.SamplingIntegrator):
@@ -209,3 +244,16 @@ def register() -> None:
     if variant not in _registered:
         mi.register_integrator("guided_path", lambda props: GuidedPathIntegrator(props))
         _registered.add(variant)
+
+
+def integrator_for(method, max_depth: int = defaults.MAX_DEPTH, nee: bool = False,
+                   memory_limit: int | str | None = None) -> mi.SamplingIntegrator:
+    """The integrator that renders ``method`` (a :class:`~guiding.guides.methods.Method`): the Mitsuba integrator it
+    names (``path``, which always does next-event estimation), else ``guided_path`` with a fresh guide of the method
+    and ``nee`` (refused, GuidingError, if the guide's tables would exceed ``memory_limit``)."""
+    if method.mitsuba_integrator is not None:
+        return mi.load_dict({"type": method.mitsuba_integrator, "max_depth": max_depth})
+    props = mi.Properties()
+    props["max_depth"] = max_depth
+    props["nee"] = nee
+    return GuidedPathIntegrator(props, guide=method.build(memory_limit))
