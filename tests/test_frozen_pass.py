@@ -20,15 +20,15 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from guiding.guides.methods import method_names
+from guiding.guides.methods import method_names, resolve
 
 #: Pass sizes: the first passes alike (the learning passes), then a pass size met before, after another one.
 SCHEDULE = (2, 2, 2, 4, 2, 4, 8, 4)
-#: Every method: a guide that branches on host state without declaring it in its trace_key fails here. Among them
+#: Every method of guided_path (``path`` is Mitsuba's own integrator): a guide that branches on host state without declaring it in its trace_key fails here. Among them
 #: every kind of device state: SARSA and the memo tables, Monte Carlo's vertex log, the Expected SARSA value, refined
 #: bins, the cells' alias tables, the uniform proposals' rejection loop, the SD-tree and quadtree forests (whose
 #: arrays change size); ``ours`` with its statistics counters.
-METHODS = method_names()
+METHODS = [name for name in method_names() if resolve(name).mitsuba_integrator is None]
 #: The key of ``_compare``'s result with a BSDF alive outside the scene.
 OUTSIDE_BSDF = "with a BSDF outside the scene"
 #: The SD-tree stops training at this pass: its last iteration traces a kernel without recording.
