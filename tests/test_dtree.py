@@ -238,18 +238,22 @@ def _guide_with(forest: Forest, guide=None) -> SDTreeGuide:
     return guide
 
 
+def _mixture_at_a_vertex(seed: int, bsdf_dict: dict, share: float | None):
+    """A guide with one random D-tree (its BSDF share fixed, or learned and set to ``share``), the BSDF, and the
+    chi-square adapter that puts both at one vertex: (guide, bsdf, adapter)."""
+    guide = _guide_with(nested_forest([random_tree(np.random.default_rng(seed), 4, 0.6, zeros=0.2)]))
+    if share is not None:
+        guide._fraction = LearnedBsdfFraction(1, share)
+    bsdf = mi.load_dict(bsdf_dict)
+    return guide, bsdf, GuideAdapter(guide, position=(0.3, 0.6, 0.2), bsdf=bsdf, replay=True)
+
+
 @pytest.mark.parametrize("share", [None, 0.3], ids=["fixed share", "learned share"])
 @pytest.mark.parametrize("bsdf_dict", [{"type": "diffuse", "reflectance": 0.5},
                                        {"type": "twosided", "material": {"type": "diffuse", "reflectance": 0.5}}])
 def test_bsdf_mixture_matches_density_on_a_diffuse_surface(bsdf_dict, share):
     """The mixture with the BSDF share ``bsdf_fraction`` (0.5), or with the D-tree's learned share."""
-    rng = np.random.default_rng(7)
-    forest = nested_forest([random_tree(rng, 4, 0.6, zeros=0.2)])
-    guide = _guide_with(forest)
-    if share is not None:
-        guide._fraction = LearnedBsdfFraction(1, share)
-    bsdf = mi.load_dict(bsdf_dict)
-    adapter = GuideAdapter(guide, position=(0.3, 0.6, 0.2), bsdf=bsdf, replay=True)
+    guide, bsdf, adapter = _mixture_at_a_vertex(7, bsdf_dict, share)
     ctx = mi.BSDFContext()
     checked = {}
 
@@ -296,13 +300,8 @@ def test_smooth_part_of_a_bsdf_with_a_delta_lobe_is_guided(bsdf_dict, share):
     the sample dimensions that the delta lobe leaves unused), so the density it checks is ``guide.pdf`` plus the
     delta lobe's probability over 4π. With a learned share, the vertex's score (what the share learns from) is
     1/α at the delta lobe's directions and (p_bsdf − p_tree)/m at the others."""
-    rng = np.random.default_rng(9)
-    guide = _guide_with(nested_forest([random_tree(rng, 4, 0.6, zeros=0.2)]))
+    guide, bsdf, adapter = _mixture_at_a_vertex(9, bsdf_dict, share)
     alpha = guide.bsdf_fraction if share is None else share
-    if share is not None:
-        guide._fraction = LearnedBsdfFraction(1, share)
-    bsdf = mi.load_dict(bsdf_dict)
-    adapter = GuideAdapter(guide, position=(0.3, 0.6, 0.2), bsdf=bsdf, replay=True)
     ctx = mi.BSDFContext()
     checked = {}
 
