@@ -170,11 +170,15 @@ def build_parser() -> argparse.ArgumentParser:
                                    "the S-tree threshold at several image sizes")
     baseline.add_argument("--out", default="results", help="output folder (default results; references are cached "
                           "under OUT/sdtree_baseline/references)")
-    baseline.add_argument("--part", choices=["all", "equal-spp", "threshold", *SCENE_STUDIES], default="all",
+    baseline.add_argument("--part", choices=["all", "equal-spp", "threshold", *SCENE_STUDIES, "combination"],
+                          default="all",
                           help="which table to make (default all; improved-preset: sdtree with the learned BSDF share "
                           "and the stochastic spatial filter of Müller 2019, each and together, on the four shared "
                           "scenes, results/sdtree_improved_preset.md; bsdf-share: sdtree at fixed BSDF shares there, "
-                          "results/sdtree_bsdf_share.md)")
+                          "results/sdtree_bsdf_share.md; combination: the final image of sdtree and sdtree-learned "
+                          "from their last iterations, weighted by spp, by their own variance or by the other half's, "
+                          "against the last alone, on glass-lamp and the shared scenes, "
+                          "results/sdtree_combination.md)")
     baseline.add_argument("--scene", default="veach-ajar")
     baseline.add_argument("--scale", type=_positive_float, default=0.0625,
                           help="resolution scale of the equal-spp table (default 0.0625: 80x45)")
@@ -184,8 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="spp of the `path` reference of the equal-spp table and of the threshold study's first "
                           "scale (default 131072)")
     baseline.add_argument("--preset-scenes", default=None,
-                          help="comma-separated NAME:SCALE list of the scenes of the improved-preset and bsdf-share "
-                          "tables (default: the four shared scenes at the paper experiments' scales)")
+                          help="comma-separated NAME:SCALE list of the scenes of the improved-preset, bsdf-share and "
+                          "combination tables (default: the four shared scenes at the paper experiments' scales, and "
+                          "glass-lamp at 0.0625 first for combination)")
     baseline.add_argument("--threshold-scales", default="0.0625,0.125,0.25",
                           help="comma-separated scales of the threshold study (default 0.0625,0.125,0.25); their "
                           "references have the same samples per image as the first's")
@@ -437,12 +442,14 @@ def _command_sdtree_baseline(args) -> None:
         raise GuidingError("sdtree-baseline: give at least one seed, and scales > 0")
     from .bench_command import parse_scene_list
     from .sdtree_baseline import PRESET_SCENES, equal_spp_table, scenes_table, threshold_table
+    from .sdtree_combination import COMBINATION_SCENES, combination_table
 
     studies = {part: study for part, study in SCENE_STUDIES.items() if args.part in ("all", part)}
     study_scenes = parse_scene_list(args.preset_scenes) if args.preset_scenes else list(PRESET_SCENES)
-    if studies:
-        for name, _ in study_scenes:
-            find_scene(name)
+    combination_scenes = parse_scene_list(args.preset_scenes) if args.preset_scenes else list(COMBINATION_SCENES)
+    combination = args.part in ("all", "combination")
+    for name, _ in (study_scenes if studies else []) + (combination_scenes if combination else []):
+        find_scene(name)
     variant = set_variant(args.variant, args.threads)
     out = prepare_output_dir(args.out)
     from .bench import write_table
@@ -482,6 +489,22 @@ def _command_sdtree_baseline(args) -> None:
                     "relative to `brdf`; `break_even_cost`: the cost per spp relative to `brdf`'s below which a row "
                     "would have the lower MAE at equal time, with MAE ∝ 1/sqrt(spp))", device, command,
                     sections={"Runs": runs})
+        print(summary.to_string(index=False))
+    if combination:
+        summary, runs = combination_table(combination_scenes, spp=args.spp, seeds=seeds,
+                                          reference_spp=args.reference_spp, cache=cache)
+        command = (f"python -m guiding sdtree-baseline --part combination --spp {args.spp} --seeds {args.seeds} "
+                   f"--reference-spp {args.reference_spp}"
+                   + (f" --preset-scenes {args.preset_scenes}" if args.preset_scenes else "")
+                   + (f" --threads {args.threads}" if args.threads else ""))
+        scenes = ", ".join(f"{name} at scale {scale:g}" for name, scale in combination_scenes)
+        write_table(summary, out / "sdtree_combination", "The SD-tree's final image from its last iterations at "
+                    f"equal spp: {scenes}, {args.spp} spp, seeds {args.seeds}; every combination made from the same "
+                    f"renders' passes; image means and MAE against a {args.reference_spp}-spp `path` reference "
+                    "(`mean_vs_reference`: relative difference of the image means, `mean_se` its standard error "
+                    "over seeds, `reference_se` the reference's, `z` the difference over both; `mae_vs_last`: "
+                    "relative to the last iteration's; `variance_per_sample_last_four`: of the last four "
+                    "iterations, relative to the last's)", device, command, sections={"Runs": runs})
         print(summary.to_string(index=False))
 
 

@@ -10,13 +10,15 @@ then (``combine``; by default the guide's own, :attr:`~guiding.guides.base.Guide
 
 * ``"last"``: the last iteration alone (Müller et al. 2017),
 * ``"automatic"``: the last iteration alone, with training stopped by the variance (below), or
-* ``"inverse-variance"``: the mean of the last :data:`COMBINED_ITERATIONS` iterations weighted by the inverse of
-  each one's estimated variance (Müller 2019, "Practical Path Guiding in Production"; the same number of
-  iterations as his implementation). An iteration's variance is estimated from the spread of its pass images
-  (:func:`iteration_variance`; Müller's implementation accumulates squared samples, which ``mi.render`` does not
-  return), so an iteration of a single pass has no estimate and no weight. The weights come from the same samples
-  as the images, so the combination is consistent rather than strictly unbiased; the tests bound the effect
-  against Mitsuba's ``path`` integrator.
+* ``"inverse-variance"``: the mean of the last :data:`COMBINED_ITERATIONS` iterations (the same number as Müller
+  2019, "Practical Path Guiding in Production"), each weighted by its spp (:func:`combine_iterations`): the
+  inverse of its image's variance where its samples have the variance of the others', a weight fixed before the
+  iteration is rendered. Müller's weights, the inverse of a variance estimated from the iteration's own samples,
+  are biased: an iteration that caught a rare, bright path is brighter and gets less weight, which pulled the
+  image down where such paths carry the light (``glass-lamp``; results/sdtree_combination.md).
+  Over the last four iterations the variance per sample hardly changes on the scenes measured, so weighting by
+  spp keeps nearly all of their benefit. The first iteration, rendered before the guide has learned anything
+  (BSDF sampling alone), gets no weight.
 
 Every iteration's spp, time, hit rate, variance, weight and the guide's statistics at its end are in
 :attr:`RenderResult.iterations`.
@@ -221,16 +223,21 @@ def extrapolated_variance(variance: float | None, spent: float, left: float) -> 
     return variance * spent / left if variance else None
 
 
-def combine_iterations(images: list[np.ndarray], variances: list[float | None]) -> tuple[np.ndarray, list[float]]:
-    """``(Σ w_k I_k, [w_k])``: iteration images weighted by the inverse of their variance, ``w_k ∝ 1/V_k``,
-    normalised to sum to one. An image without a variance estimate gets weight 0; when none has one, the last
-    image alone is returned (weight 1). A zero estimate counts as none: it comes from an image in which no pass
-    found any light (a guide that has not yet found a small source), not from an exact one, and as 1/0 it would
-    take all the weight from the iterations that found the light (a black final image)."""
-    inverse = np.array([1.0 / v if v else 0.0 for v in variances])
-    if not inverse.any():
-        inverse[-1] = 1.0
-    weights = inverse / inverse.sum()
+def combine_iterations(images: list[np.ndarray], spps: list[int],
+                       learned: list[bool]) -> tuple[np.ndarray, list[float]]:
+    """``(Σ w_k I_k, [w_k])``: iteration images weighted by their spp, ``w_k = S_k / Σ S``, over the images whose
+    iteration was rendered with a guide that had learned (``learned``; the others get weight 0); when none was, the
+    last image alone (weight 1).
+
+    Unbiased: every iteration's image is an unbiased estimate given what the iterations before it taught the guide,
+    and its weight is fixed before it is rendered (by the guide's schedule, or under a seconds budget by the times
+    measured, never by the images), so ``E[Σ w_k I_k] = Σ E[w_k] μ = μ``. These are the inverse-variance weights
+    where the iterations' samples have equal variance; weights estimated from the images' own samples are not
+    unbiased (module docstring)."""
+    weights = np.array([s if trained else 0.0 for s, trained in zip(spps, learned)], dtype=np.float64)
+    if not weights.any():
+        weights[-1] = 1.0
+    weights /= weights.sum()
     image = sum(w * img for w, img in zip(weights, images) if w > 0)
     return image, [float(w) for w in weights]
 
@@ -244,6 +251,7 @@ class _IterationImages:
         self.kept: deque = deque(maxlen=COMBINED_ITERATIONS if combine == COMBINE_INVERSE_VARIANCE else 1)
         self.first = self.second = None
         self.spp = self.passes = 0
+        self.closed = 0       # iterations closed so far: the first, rendered before the guide learned, is number 0
 
     def add_pass(self, image, spp: int) -> None:
         """Add a pass image (a device tensor) of ``spp`` samples per pixel (inside the pass's timed region)."""
@@ -273,18 +281,19 @@ class _IterationImages:
         image, _, record.variance = self._current()
         self.kept.append((record, image))
         self.spp = self.passes = 0
+        self.closed += 1
 
     def image(self) -> tuple[np.ndarray, int, list[tuple[IterationStats | None, float]]]:
         """What the render shows now: (image (H, W, 3) float64, spp it is made of, [(iteration, weight)]), with
         the running iteration (record None) as the newest one."""
-        items = [(record, image, record.spp, record.variance) for record, image in self.kept]
+        items = [(record, image, record.spp, record.index > 0) for record, image in self.kept]
         if self.passes:
-            items.append((None, *self._current()))
+            items.append((None, *self._current()[:2], self.closed > 0))
         if self.combine != COMBINE_INVERSE_VARIANCE:
             record, image, spp, _ = items[-1]
             return image, spp, [(record, 1.0)]
         items = items[-COMBINED_ITERATIONS:]
-        image, weights = combine_iterations([i[1] for i in items], [i[3] for i in items])
+        image, weights = combine_iterations([i[1] for i in items], [i[2] for i in items], [i[3] for i in items])
         spp = sum(i[2] for i, w in zip(items, weights) if w > 0)
         return image, spp, [(i[0], w) for i, w in zip(items, weights)]
 
