@@ -178,11 +178,14 @@ def build_parser() -> argparse.ArgumentParser:
                           "results/sdtree_bsdf_share.md; combination: the final image of sdtree and sdtree-learned "
                           "from their last iterations, weighted by spp, by their own variance or by the other half's, "
                           "against the last alone, on glass-lamp and the shared scenes, "
-                          "results/sdtree_combination.md)")
+                          "results/sdtree_combination/equal_spp.md)")
     baseline.add_argument("--scene", default="veach-ajar")
     baseline.add_argument("--scale", type=_positive_float, default=0.0625,
                           help="resolution scale of the equal-spp table (default 0.0625: 80x45)")
     baseline.add_argument("--spp", type=_positive_int, default=1024, help="spp of every render (default 1024)")
+    baseline.add_argument("--seconds", type=_positive_float, default=None,
+                          help="combination only: a seconds budget of every render instead of --spp, its first "
+                          "passes not counted as in config/paper.yaml's equal time; timed: run it alone on the machine")
     baseline.add_argument("--seeds", default="0,1,2", help="comma-separated render seeds (default 0,1,2)")
     baseline.add_argument("--reference-spp", type=_positive_int, default=131072,
                           help="spp of the `path` reference of the equal-spp table and of the threshold study's first "
@@ -442,7 +445,7 @@ def _command_sdtree_baseline(args) -> None:
         raise GuidingError("sdtree-baseline: give at least one seed, and scales > 0")
     from .bench_command import parse_scene_list
     from .sdtree_baseline import PRESET_SCENES, equal_spp_table, scenes_table, threshold_table
-    from .sdtree_combination import COMBINATION_SCENES, combination_table
+    from .sdtree_combination import COMBINATION_SCENES, EXCLUDED_PASSES, combination_table
 
     studies = {part: study for part, study in SCENE_STUDIES.items() if args.part in ("all", part)}
     study_scenes = parse_scene_list(args.preset_scenes) if args.preset_scenes else list(PRESET_SCENES)
@@ -492,14 +495,18 @@ def _command_sdtree_baseline(args) -> None:
         print(summary.to_string(index=False))
     if combination:
         summary, runs = combination_table(combination_scenes, spp=args.spp, seeds=seeds,
-                                          reference_spp=args.reference_spp, cache=cache)
-        command = (f"python -m guiding sdtree-baseline --part combination --spp {args.spp} --seeds {args.seeds} "
+                                          reference_spp=args.reference_spp, cache=cache, seconds=args.seconds)
+        timed = args.seconds is not None
+        budget = f"--seconds {args.seconds:g}" if timed else f"--spp {args.spp}"
+        command = (f"python -m guiding sdtree-baseline --part combination {budget} --seeds {args.seeds} "
                    f"--reference-spp {args.reference_spp}"
                    + (f" --preset-scenes {args.preset_scenes}" if args.preset_scenes else "")
                    + (f" --threads {args.threads}" if args.threads else ""))
         scenes = ", ".join(f"{name} at scale {scale:g}" for name, scale in combination_scenes)
-        write_table(summary, out / "sdtree_combination", "The SD-tree's final image from its last iterations at "
-                    f"equal spp: {scenes}, {args.spp} spp, seeds {args.seeds}; every combination made from the same "
+        spent = f"{args.seconds:g} s (first {EXCLUDED_PASSES} passes not counted)" if timed else f"{args.spp} spp"
+        write_table(summary, out / "sdtree_combination" / ("equal_time" if timed else "equal_spp"), "The SD-tree's "
+                    f"final image from its last iterations at equal {'time' if timed else 'spp'}: {scenes}, {spent}, "
+                    f"seeds {args.seeds}; every combination made from the same "
                     f"renders' passes; image means and MAE against a {args.reference_spp}-spp `path` reference "
                     "(`mean_vs_reference`: relative difference of the image means, `mean_se` its standard error "
                     "over seeds, `reference_se` the reference's, `z` the difference over both; `mae_vs_last`: "

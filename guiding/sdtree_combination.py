@@ -1,5 +1,5 @@
 """How the SD-tree's final image is made of its last iterations, measured (``python -m guiding sdtree-baseline
---part combination``, results/sdtree_combination.md).
+--part combination``, results/sdtree_combination/).
 
 The renderer weighs the last four iterations by their spp (:func:`guiding.render.combine_iterations`), weights fixed
 before the images are drawn. Müller 2019's weights, the inverse of each iteration's variance estimated from its own
@@ -29,6 +29,8 @@ COMBINATION_METHODS = ("sdtree", "sdtree-learned")
 #: iteration's own samples, and weights from the other half of its passes.
 COMBINATIONS = ("spp weights (default)", "last iteration (sdtree-last)", "own-variance weights (before)",
                 "split-halves weights")
+#: Leading passes a seconds budget does not count (config/paper.yaml's equal-time budget: its first 80 spp).
+EXCLUDED_PASSES = 10
 #: Passes of the short `path` render that estimates a reference's standard error, each of 1/256 of its spp.
 REFERENCE_ERROR_PASSES = 24
 
@@ -105,36 +107,38 @@ def reference_standard_error(scene, spp: int, seed: int) -> float:
     return float(np.sqrt(means.var(ddof=1) * pass_spp / spp) / means.mean())
 
 
-def _render_passes(scene, method: str, spp: int, seed: int):
-    """One equal-spp render (the method's default combination) and ``(spp, iteration, image)`` of its passes."""
+def _render_passes(scene, method: str, budget, seed: int):
+    """One render (the method's default combination) and ``(spp, iteration, image)`` of its passes, each pass in the
+    renderer's iteration (under a seconds budget the passes after training stopped belong to the iteration that
+    became the final one, while the guide counts them in the next)."""
     import mitsuba as mi
 
     from .integrator import GuidedPathIntegrator
     from .methods import make_guide
-    from .render import Budget, render
+    from .render import render
     from .sdtree_baseline import MAX_DEPTH
 
     props = mi.Properties()
     props["max_depth"] = MAX_DEPTH
     passes = []
-    result = render(scene, GuidedPathIntegrator(props, guide=make_guide(method)), Budget(spp=spp), seed=seed,
-                    progress=False,
-                    on_pass=lambda stats, image: passes.append((stats.spp, stats.guide["iteration"], image)))
-    return result, passes
+    result = render(scene, GuidedPathIntegrator(props, guide=make_guide(method)), budget, seed=seed, progress=False,
+                    on_pass=lambda stats, image: passes.append((stats.spp, stats.spp_total, image)))
+    ends = [it.spp_end for it in result.iterations]
+    return result, [(spp, int(np.searchsorted(ends, total)), image) for spp, total, image in passes]
 
 
-def combination_runs(scene, scene_name: str, scale: float, methods: tuple[str, ...], spp: int,
+def combination_runs(scene, scene_name: str, scale: float, methods: tuple[str, ...], budget,
                      seeds: tuple[int, ...], reference: np.ndarray) -> list[dict]:
-    """One record per (method, seed, combination) of ``scene`` (``scene_name`` at ``scale``): the image mean
-    relative to the reference's and the MAE; and per (method, seed) the variance per sample of the last four
-    iterations, relative to the last's."""
+    """One record per (method, seed, combination) of ``scene`` (``scene_name`` at ``scale``) rendered with
+    ``budget`` (:class:`~guiding.render.Budget`): the image mean relative to the reference's, the MAE and the spp;
+    and per (method, seed) the variance per sample of the last four iterations, relative to the last's."""
     from .metrics import mae_tonemapped
 
     reference_mean = reference.astype(np.float64).mean()
     records = []
     for method in methods:
         for seed in seeds:
-            result, passes = _render_passes(scene, method, spp, seed)
+            result, passes = _render_passes(scene, method, budget, seed)
             iterations = iteration_images(passes)
             images = dict(zip(COMBINATIONS, (result.image, iterations[-1].image, self_weighted_image(iterations),
                                              split_halves_image(passes))))
@@ -144,14 +148,14 @@ def combination_runs(scene, scene_name: str, scale: float, methods: tuple[str, .
                 records.append({"scene": scene_name, "scale": scale, "method": method, "seed": seed,
                                 "combination": combination,
                                 "mean_vs_reference": float(np.asarray(image, np.float64).mean() / reference_mean - 1),
-                                "mae": mae_tonemapped(image, reference),
+                                "mae": mae_tonemapped(image, reference), "spp": result.spp,
                                 "variance_per_sample": [v / per_sample[-1] for v in per_sample]})
     return records
 
 
 def combination_table(scenes=COMBINATION_SCENES, methods: tuple[str, ...] = COMBINATION_METHODS, spp: int = 1024,
                       seeds: tuple[int, ...] = tuple(range(12)), reference_spp: int = 32768,
-                      cache: Path = Path("results")):
+                      cache: Path = Path("results"), seconds: float | None = None):
     """Per scene, method and combination: the image mean relative to the `path` reference's (mean over ``seeds``,
     its standard error with the reference's, and ``z`` = the difference over it), the MAE (mean, standard error,
     relative to the last iteration's), and the variance per sample of the last four iterations relative to the
@@ -160,7 +164,9 @@ def combination_table(scenes=COMBINATION_SCENES, methods: tuple[str, ...] = COMB
     Parameters:
       scenes: (name, scale) pairs (default :data:`COMBINATION_SCENES`).
       methods: the SD-tree methods (default ``sdtree`` and ``sdtree-learned``).
-      spp: samples per pixel of every render (default 1024).
+      spp: samples per pixel of every render (default 1024), unless ``seconds`` is given.
+      seconds: a seconds budget of every render instead, its first :data:`EXCLUDED_PASSES` passes not counted (as
+        the equal-time experiment of config/paper.yaml); timed: the renders must have the machine to themselves.
       seeds: render seeds (default 0 to 11).
       reference_spp: spp of the `path` references (default 32768).
       cache: folder of the cached references (:func:`guiding.sdtree_baseline.reference_image`).
@@ -171,17 +177,20 @@ def combination_table(scenes=COMBINATION_SCENES, methods: tuple[str, ...] = COMB
     from .scenes import load_scene
     from .sdtree_baseline import REFERENCE_SEED, reference_image
 
+    from .render import Budget
+
+    budget = Budget(spp=spp) if seconds is None else Budget(seconds=seconds, exclude_passes=EXCLUDED_PASSES)
     records, reference_errors = [], {}
     for scene_name, scale in scenes:
         scene = load_scene(scene_name, scale)
         reference = reference_image(scene_name, scale, reference_spp, cache)
         reference_errors[scene_name] = reference_standard_error(scene, reference_spp, REFERENCE_SEED + 1)
-        records += combination_runs(scene, scene_name, scale, methods, spp, seeds, reference)
+        records += combination_runs(scene, scene_name, scale, methods, budget, seeds, reference)
     runs = pd.DataFrame(records)
     keys = ["scene", "scale", "method", "combination"]
     summary = runs.groupby(keys, sort=False).agg(
         mean_vs_reference=("mean_vs_reference", "mean"), mean_se=("mean_vs_reference", "sem"),
-        mae=("mae", "mean"), mae_se=("mae", "sem"), seeds=("seed", "count")).reset_index()
+        mae=("mae", "mean"), mae_se=("mae", "sem"), spp=("spp", "mean"), seeds=("seed", "count")).reset_index()
     summary.insert(summary.columns.get_loc("mean_se") + 1, "reference_se", summary["scene"].map(reference_errors))
     standard_error = np.sqrt(summary["mean_se"] ** 2 + summary["reference_se"] ** 2)
     summary.insert(summary.columns.get_loc("reference_se") + 1, "z", summary["mean_vs_reference"] / standard_error)
