@@ -94,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="every pass has --pass-spp spp (by default later passes grow where the guide allows)")
     render.add_argument("--combine", choices=["last", "automatic", "inverse-variance"], default=None,
                         help="final image of a guide with iterations (sdtree): the last iteration, the last one "
-                        "with training stopped by the variance, or the last four weighted by their inverse variance "
+                        "with training stopped by the variance, or the last four weighted by their spp "
                         "(default: the method's own, inverse-variance for sdtree)")
     render.add_argument("--snapshots", action="store_true",
                         help="also write the image after every pass_spp*2^k spp as image_snapNNNNN.exr")
