@@ -509,7 +509,8 @@ def _command_sdtree_baseline(args) -> None:
                     f"seeds {args.seeds}; every combination made from the same "
                     f"renders' passes; image means and MAE against a {args.reference_spp}-spp `path` reference "
                     "(`mean_vs_reference`: relative difference of the image means, `mean_se` its standard error "
-                    "over seeds, `reference_se` the reference's, `z` the difference over both; `mae_vs_last`: "
+                    "over seeds, `reference_se` the reference's, `z` the difference over both; `mean_minus_last`: "
+                    "the difference to the last iteration's image mean in the same render; `mae_vs_last`: "
                     "relative to the last iteration's; `variance_per_sample_last_four`: of the last four "
                     "iterations, relative to the last's)", device, command, sections={"Runs": runs})
         print(summary.to_string(index=False))

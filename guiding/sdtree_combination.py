@@ -157,8 +157,9 @@ def combination_table(scenes=COMBINATION_SCENES, methods: tuple[str, ...] = COMB
                       seeds: tuple[int, ...] = tuple(range(12)), reference_spp: int = 32768,
                       cache: Path = Path("results"), seconds: float | None = None):
     """Per scene, method and combination: the image mean relative to the `path` reference's (mean over ``seeds``,
-    its standard error with the reference's, and ``z`` = the difference over it), the MAE (mean, standard error,
-    relative to the last iteration's), and the variance per sample of the last four iterations relative to the
+    its standard error with the reference's, and ``z`` = the difference over it), its difference to the last
+    iteration's image mean in the same render (mean and standard error over ``seeds``), the MAE (mean, standard
+    error, relative to the last iteration's), and the variance per sample of the last four iterations relative to the
     last's (means over seeds: how far the spp weights are from the inverse-variance weights); and every run.
 
     Parameters:
@@ -174,10 +175,9 @@ def combination_table(scenes=COMBINATION_SCENES, methods: tuple[str, ...] = COMB
     """
     import pandas as pd
 
+    from .render import Budget
     from .scenes import load_scene
     from .sdtree_baseline import REFERENCE_SEED, reference_image
-
-    from .render import Budget
 
     budget = Budget(spp=spp) if seconds is None else Budget(seconds=seconds, exclude_passes=EXCLUDED_PASSES)
     records, reference_errors = [], {}
@@ -187,9 +187,16 @@ def combination_table(scenes=COMBINATION_SCENES, methods: tuple[str, ...] = COMB
         reference_errors[scene_name] = reference_standard_error(scene, reference_spp, REFERENCE_SEED + 1)
         records += combination_runs(scene, scene_name, scale, methods, budget, seeds, reference)
     runs = pd.DataFrame(records)
+    # The last iteration's image is unbiased and made of the same passes: the difference to it, render by render,
+    # shows a combination's bias without the noise of the samples both images hold.
+    render_keys = ["scene", "method", "seed"]
+    last_mean = runs[runs["combination"] == COMBINATIONS[1]].set_index(render_keys)["mean_vs_reference"]
+    runs.insert(runs.columns.get_loc("mean_vs_reference") + 1, "mean_minus_last",
+                runs["mean_vs_reference"] - last_mean.loc[pd.MultiIndex.from_frame(runs[render_keys])].to_numpy())
     keys = ["scene", "scale", "method", "combination"]
     summary = runs.groupby(keys, sort=False).agg(
         mean_vs_reference=("mean_vs_reference", "mean"), mean_se=("mean_vs_reference", "sem"),
+        mean_minus_last=("mean_minus_last", "mean"), mean_minus_last_se=("mean_minus_last", "sem"),
         mae=("mae", "mean"), mae_se=("mae", "sem"), spp=("spp", "mean"), seeds=("seed", "count")).reset_index()
     summary.insert(summary.columns.get_loc("mean_se") + 1, "reference_se", summary["scene"].map(reference_errors))
     standard_error = np.sqrt(summary["mean_se"] ** 2 + summary["reference_se"] ** 2)
