@@ -16,9 +16,9 @@ then (``combine``; by default the guide's own, :attr:`~guiding.guides.base.Guide
   iteration is rendered. Müller's weights, the inverse of a variance estimated from the iteration's own samples,
   are biased: an iteration that caught a rare, bright path is brighter and gets less weight, which pulled the
   image down where such paths carry the light (``glass-lamp``; results/sdtree_combination/).
-  Over the last four iterations the variance per sample hardly changes on the scenes measured, so weighting by
-  spp keeps nearly all of their benefit. The first iteration, rendered before the guide has learned anything
-  (BSDF sampling alone), gets no weight.
+  Over the last four iterations the variance per sample changes little on most scenes measured, so weighting by
+  spp keeps most of their benefit. The first iteration, rendered before the guide has learned anything (BSDF
+  sampling alone), gets no weight.
 
 Every iteration's spp, time, hit rate, variance, weight and the guide's statistics at its end are in
 :attr:`RenderResult.iterations`.
