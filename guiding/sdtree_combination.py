@@ -184,12 +184,12 @@ def combination_table(scenes=COMBINATION_SCENES, methods: tuple[str, ...] = COMB
     for scene_name, scale in scenes:
         scene = load_scene(scene_name, scale)
         reference = reference_image(scene_name, scale, reference_spp, cache)
-        reference_errors[scene_name] = reference_standard_error(scene, reference_spp, REFERENCE_SEED + 1)
+        reference_errors[scene_name, scale] = reference_standard_error(scene, reference_spp, REFERENCE_SEED + 1)
         records += combination_runs(scene, scene_name, scale, methods, budget, seeds, reference)
     runs = pd.DataFrame(records)
     # The last iteration's image is unbiased and made of the same passes: the difference to it, render by render,
     # shows a combination's bias without the noise of the samples both images hold.
-    render_keys = ["scene", "method", "seed"]
+    render_keys = ["scene", "scale", "method", "seed"]
     last_mean = runs[runs["combination"] == COMBINATIONS[1]].set_index(render_keys)["mean_vs_reference"]
     runs.insert(runs.columns.get_loc("mean_vs_reference") + 1, "mean_minus_last",
                 runs["mean_vs_reference"] - last_mean.loc[pd.MultiIndex.from_frame(runs[render_keys])].to_numpy())
@@ -198,14 +198,16 @@ def combination_table(scenes=COMBINATION_SCENES, methods: tuple[str, ...] = COMB
         mean_vs_reference=("mean_vs_reference", "mean"), mean_se=("mean_vs_reference", "sem"),
         mean_minus_last=("mean_minus_last", "mean"), mean_minus_last_se=("mean_minus_last", "sem"),
         mae=("mae", "mean"), mae_se=("mae", "sem"), spp=("spp", "mean"), seeds=("seed", "count")).reset_index()
-    summary.insert(summary.columns.get_loc("mean_se") + 1, "reference_se", summary["scene"].map(reference_errors))
+    summary.insert(summary.columns.get_loc("mean_se") + 1, "reference_se",
+                   [reference_errors[key] for key in zip(summary["scene"], summary["scale"])])
     standard_error = np.sqrt(summary["mean_se"] ** 2 + summary["reference_se"] ** 2)
     summary.insert(summary.columns.get_loc("reference_se") + 1, "z", summary["mean_vs_reference"] / standard_error)
-    last = summary[summary["combination"] == COMBINATIONS[1]].set_index(["scene", "method"])["mae"]
+    row_keys = pd.MultiIndex.from_frame(summary[["scene", "scale", "method"]])
+    last = summary[summary["combination"] == COMBINATIONS[1]].set_index(["scene", "scale", "method"])["mae"]
     summary.insert(summary.columns.get_loc("mae_se") + 1, "mae_vs_last",
-                   summary["mae"] / [last[(s, m)] for s, m in zip(summary["scene"], summary["method"])] - 1)
-    variance = runs[runs["combination"] == COMBINATIONS[0]].groupby(["scene", "method"], sort=False)[
-        "variance_per_sample"].apply(lambda rows: " / ".join(f"{v:.2f}" for v in np.nanmean(np.stack(rows), 0)))
-    summary["variance_per_sample_last_four"] = [variance[(s, m)] for s, m in zip(summary["scene"], summary["method"])]
+                   summary["mae"] / last.loc[row_keys].to_numpy() - 1)
+    variance = runs[runs["combination"] == COMBINATIONS[0]].groupby(["scene", "scale", "method"], sort=False)[
+        "variance_per_sample"].apply(lambda rows: " / ".join(f"{v:.2f}" for v in pd.DataFrame(list(rows)).mean()))
+    summary["variance_per_sample_last_four"] = variance.loc[row_keys].to_numpy()
     runs["variance_per_sample"] = runs["variance_per_sample"].map(lambda v: " / ".join(f"{x:.2f}" for x in v))
     return summary, runs
