@@ -796,17 +796,26 @@ def test_inverse_variance_image_is_the_spp_weighted_mean_of_the_last_four_iterat
     assert np.abs(result.image - iterations[-1].image).mean() > 100 * 1e-5 * np.abs(expected).mean()
 
 
-def test_inverse_variance_weights_are_fixed_before_the_images(cornell):
-    """The weights depend on the schedule alone: the first iteration (BSDF sampling before the guide learned) gets
-    none, even where it is the only other one, and every snapshot weighs the running iteration by its spp so far."""
+def test_inverse_variance_weights_depend_on_the_schedule_alone(cornell):
+    """Weights fixed before the images are drawn: renders of other seeds (other images, other variances) get the
+    same weights, ∝ spp; the first iteration (BSDF sampling before the guide learned) gets none; and every snapshot
+    weighs the running iteration by its spp so far."""
     from guiding.render import Budget, render
 
-    snapshots = []
-    result = render(cornell, GuidedPathIntegrator(guide=SDTreeGuide(base_spp=8)), Budget(spp=40, pass_spp=8),
-                    seed=2, snapshot=lambda spp, image, seconds, spp_in_image: snapshots.append((spp, spp_in_image)))
-    assert [(it.spp, it.weight) for it in result.iterations] == [(8, 0.0), (32, 1.0)]
-    # After 8 spp only the first iteration exists: it is the image; then the second's spp so far.
-    assert snapshots == [(8, 8), (16, 8), (32, 24), (40, 32)]
+    renders = []
+    for seed in (2, 3):
+        snapshots = []
+        result = render(cornell, GuidedPathIntegrator(guide=SDTreeGuide(base_spp=8)), Budget(spp=120, pass_spp=8),
+                        seed=seed, snapshot=lambda spp, image, seconds, in_image: snapshots.append((spp, in_image)))
+        renders.append((result, snapshots))
+    (first, first_snapshots), (second, second_snapshots) = renders
+    # Iterations of 8, 16, 32 and (to the end) 64 spp.
+    expected = [(8, 0.0), (16, 16 / 112), (32, 32 / 112), (64, 64 / 112)]
+    for result in (first, second):
+        assert [(it.spp, it.weight) for it in result.iterations] == pytest.approx(expected, rel=1e-12)
+    assert [it.variance for it in first.iterations[1:]] != [it.variance for it in second.iterations[1:]]
+    # After 8 spp the first iteration is the image; later the learned ones so far, the running one included.
+    assert first_snapshots == second_snapshots == [(8, 8), (16, 8), (32, 24), (64, 56), (120, 112)]
 
 
 def test_inverse_variance_combination_matches_mitsuba_path(cornell, cornell_reference):
