@@ -169,19 +169,20 @@ def test_iteration_variance_estimates_the_variance_of_the_iteration_image():
 
 
 def test_inverse_variance_combination_weights():
+    """Weights ∝ spp over the iterations rendered by a guide that had learned, whatever their images hold."""
     images = [np.full((2, 2, 3), v) for v in (1.0, 2.0, 4.0)]
-    image, weights = combine_iterations(images, [None, 0.5, 0.25])
-    assert weights == pytest.approx([0.0, 1 / 3, 2 / 3])
-    np.testing.assert_allclose(image, 2.0 / 3 + 8.0 / 3)
-    image, weights = combine_iterations(images, [None, None, None])   # no estimate: the last image alone
+    image, weights = combine_iterations(images, [8, 16, 48], [False, True, True])
+    assert weights == pytest.approx([0.0, 0.25, 0.75])
+    np.testing.assert_allclose(image, 0.5 + 3.0)
+    image, weights = combine_iterations(images, [8, 16, 48], [False, False, False])   # none learned: the last alone
     assert weights == [0.0, 0.0, 1.0] and (image == 4.0).all()
-    # An iteration whose passes found no light has variance 0: no estimate, not all the weight.
+    # An iteration whose passes found no light keeps its weight: its black image is what its estimate drew.
     images = [np.zeros((2, 2, 3)), np.full((2, 2, 3), 2.0), np.full((2, 2, 3), 4.0)]
-    image, weights = combine_iterations(images, [0.0, 0.5, 0.25])
-    assert weights == pytest.approx([0.0, 1 / 3, 2 / 3])
-    image, weights = combine_iterations(images[:1] * 2, [0.0, 0.0])   # a black scene: the last (black) image
-    assert weights == [0.0, 1.0] and (image == 0.0).all()
-    # Nor does it count for the automatic budget: a rise from 0 would stop training when the guide finds light.
+    image, weights = combine_iterations(images, [16, 16, 32], [True, True, True])
+    assert weights == pytest.approx([0.25, 0.25, 0.5])
+    np.testing.assert_allclose(image, 0.5 + 2.0)
+    # A zero variance is no estimate for the automatic budget: a rise from 0 would stop training when the guide finds
+    # light.
     assert extrapolated_variance(0.0, 64, 512) is None and extrapolated_variance(None, 64, 512) is None
     assert extrapolated_variance(0.5, 64, 512) == pytest.approx(0.0625)
 

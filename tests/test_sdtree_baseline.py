@@ -1,10 +1,11 @@
-"""`python -m guiding sdtree-baseline`: its four tables, with the command that made them, from a tiny run."""
+"""`python -m guiding sdtree-baseline`: its five tables, with the command that made them, from a tiny run."""
 
 import pandas as pd
 import pytest
 
 from guiding.cli import main
 from guiding.experiments.sdtree_baseline import PRESET_VARIANTS, SHARE_VARIANTS, THRESHOLD_CONSTANTS, VARIANTS
+from guiding.experiments.sdtree_combination import COMBINATION_METHODS, COMBINATIONS
 
 
 def test_sdtree_baseline_command_writes_its_tables(tmp_path):
@@ -33,7 +34,14 @@ def test_sdtree_baseline_command_writes_its_tables(tmp_path):
     for _, scene in shares.groupby("scale"):
         brdf = scene["mae"].iloc[0]
         assert scene["break_even_cost"].tolist() == pytest.approx(((brdf / scene["mae"]) ** 2).tolist(), rel=5e-3)
-    for name in ("sdtree_baseline.md", "sdtree_threshold.md", "sdtree_improved_preset.md", "sdtree_bsdf_share.md"):
+    combination = pd.read_csv(tmp_path / "sdtree_combination" / "equal_spp.csv")
+    assert len(combination) == 2 * len(COMBINATION_METHODS) * len(COMBINATIONS) and (combination["seeds"] == 2).all()
+    # every combination of a render beside its last iteration: that one's difference to itself is 0
+    last = combination[combination["combination"] == COMBINATIONS[1]]
+    assert (last["mean_minus_last"] == 0).all() and (last["mae_vs_last"] == 0).all()
+    assert combination["mae"].notna().all() and combination["reference_se"].gt(0).all()
+    for name in ("sdtree_baseline.md", "sdtree_threshold.md", "sdtree_improved_preset.md", "sdtree_bsdf_share.md",
+                 "sdtree_combination/equal_spp.md"):
         text = (tmp_path / name).read_text()
         assert "python -m guiding sdtree-baseline --part" in text and "## Runs" in text
     # the references are cached in the harness's layout

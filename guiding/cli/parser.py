@@ -121,7 +121,7 @@ def _add_render(commands) -> None:
                         help="every pass has --pass-spp spp (by default later passes grow where the guide allows)")
     render.add_argument("--combine", choices=["last", "automatic", "inverse-variance"], default=None,
                         help="final image of a guide with iterations (sdtree): the last iteration, the last one "
-                        "with training stopped by the variance, or the last four weighted by their inverse variance "
+                        "with training stopped by the variance, or the last four weighted by their spp "
                         "(default: the method's own, inverse-variance for sdtree)")
     render.add_argument("--snapshots", action="store_true",
                         help="also write the image after every pass_spp*2^k spp as image_snapNNNNN.exr")
@@ -218,22 +218,30 @@ def _add_sdtree_baseline(commands) -> None:
                                    "the S-tree threshold at several image sizes")
     baseline.add_argument("--out", default="results", help="output folder (default results; references are cached "
                           "under OUT/sdtree_baseline/references)")
-    baseline.add_argument("--part", choices=["all", "equal-spp", "threshold", *SCENE_STUDIES], default="all",
+    baseline.add_argument("--part", choices=["all", "equal-spp", "threshold", *SCENE_STUDIES, "combination"],
+                          default="all",
                           help="which table to make (default all; improved-preset: sdtree with the learned BSDF share "
                           "and the stochastic spatial filter of Müller 2019, each and together, on the four shared "
                           "scenes, results/sdtree_improved_preset.md; bsdf-share: sdtree at fixed BSDF shares there, "
-                          "results/sdtree_bsdf_share.md)")
+                          "results/sdtree_bsdf_share.md; combination: the final image of sdtree and sdtree-learned "
+                          "from their last iterations, weighted by spp, by their own variance or by the other half's, "
+                          "against the last alone, on glass-lamp and the shared scenes, "
+                          "results/sdtree_combination/equal_spp.md)")
     baseline.add_argument("--scene", default="veach-ajar")
     baseline.add_argument("--scale", type=_positive_float, default=0.0625,
                           help="resolution scale of the equal-spp table (default 0.0625: 80x45)")
     baseline.add_argument("--spp", type=_positive_int, default=1024, help="spp of every render (default 1024)")
+    baseline.add_argument("--seconds", type=_positive_float, default=None,
+                          help="combination only: a seconds budget of every render instead of --spp, its first "
+                          "passes not counted as in config/paper.yaml's equal time; timed: run it alone on the machine")
     baseline.add_argument("--seeds", default="0,1,2", help="comma-separated render seeds (default 0,1,2)")
     baseline.add_argument("--reference-spp", type=_positive_int, default=131072,
                           help="spp of the `path` reference of the equal-spp table and of the threshold study's first "
                           "scale (default 131072)")
     baseline.add_argument("--preset-scenes", default=None,
-                          help="comma-separated NAME:SCALE list of the scenes of the improved-preset and bsdf-share "
-                          "tables (default: the four shared scenes at the paper experiments' scales)")
+                          help="comma-separated NAME:SCALE list of the scenes of the improved-preset, bsdf-share and "
+                          "combination tables (default: the four shared scenes at the paper experiments' scales, and "
+                          "glass-lamp at 0.0625 first for combination)")
     baseline.add_argument("--threshold-scales", default="0.0625,0.125,0.25",
                           help="comma-separated scales of the threshold study (default 0.0625,0.125,0.25); their "
                           "references have the same samples per image as the first's")

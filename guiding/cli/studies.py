@@ -88,11 +88,14 @@ def command_sdtree_baseline(args) -> None:
     from guiding.bench.command import parse_scene_list
     from guiding.experiments.sdtree_baseline import PRESET_SCENES, equal_spp_table, scenes_table, threshold_table
 
+    from guiding.experiments.sdtree_combination import COMBINATION_SCENES
+
     studies = {part: study for part, study in SCENE_STUDIES.items() if args.part in ("all", part)}
     study_scenes = parse_scene_list(args.preset_scenes) if args.preset_scenes else list(PRESET_SCENES)
-    if studies:
-        for name, _ in study_scenes:
-            find_scene(name)
+    combination_scenes = parse_scene_list(args.preset_scenes) if args.preset_scenes else list(COMBINATION_SCENES)
+    combination = args.part in ("all", "combination")
+    for name, _ in (study_scenes if studies else []) + (combination_scenes if combination else []):
+        find_scene(name)
     variant = set_variant(args.variant, args.threads)
     out = prepare_output_dir(args.out)
     from guiding.bench.benchmark import write_table
@@ -133,3 +136,33 @@ def command_sdtree_baseline(args) -> None:
                     "would have the lower MAE at equal time, with MAE ∝ 1/sqrt(spp))", device, command,
                     sections={"Runs": runs})
         print(summary.to_string(index=False))
+    if combination:
+        _combination_study(args, combination_scenes, seeds, out, cache, device)
+
+
+def _combination_study(args, scenes: list[tuple[str, float]], seeds: tuple[int, ...], out, cache, device: str) -> None:
+    """``sdtree-baseline --part combination``: results/sdtree_combination/equal_spp.md, or equal_time.md under
+    ``--seconds`` (:mod:`guiding.experiments.sdtree_combination`)."""
+    from guiding.bench.benchmark import write_table
+    from guiding.experiments.sdtree_combination import EXCLUDED_PASSES, combination_table
+
+    summary, runs = combination_table(scenes, spp=args.spp, seeds=seeds, reference_spp=args.reference_spp,
+                                      cache=cache, seconds=args.seconds)
+    timed = args.seconds is not None
+    budget = f"--seconds {args.seconds:g}" if timed else f"--spp {args.spp}"
+    command = (f"python -m guiding sdtree-baseline --part combination {budget} --seeds {args.seeds} "
+               f"--reference-spp {args.reference_spp}"
+               + (f" --preset-scenes {args.preset_scenes}" if args.preset_scenes else "")
+               + (f" --threads {args.threads}" if args.threads else ""))
+    listed = ", ".join(f"{name} at scale {scale:g}" for name, scale in scenes)
+    spent = f"{args.seconds:g} s (first {EXCLUDED_PASSES} passes not counted)" if timed else f"{args.spp} spp"
+    write_table(summary, out / "sdtree_combination" / ("equal_time" if timed else "equal_spp"), "The SD-tree's "
+                f"final image from its last iterations at equal {'time' if timed else 'spp'}: {listed}, {spent}, "
+                f"seeds {args.seeds}; every combination made from the same "
+                f"renders' passes; image means and MAE against a {args.reference_spp}-spp `path` reference "
+                "(`mean_vs_reference`: relative difference of the image means, `mean_se` its standard error "
+                "over seeds, `reference_se` the reference's, `z` the difference over both; `mean_minus_last`: "
+                "the difference to the last iteration's image mean in the same render; `mae_vs_last`: "
+                "relative to the last iteration's; `variance_per_sample_last_four`: of the last four "
+                "iterations, relative to the last's)", device, command, sections={"Runs": runs})
+    print(summary.to_string(index=False))

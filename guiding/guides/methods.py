@@ -255,7 +255,7 @@ def grid_method_name(rule: str, sampler: str) -> str:
 
 
 #: The paper's configurations (S = 8, D = 16), the baselines, and every rule × sampler. ``sdtree`` is Tom94's
-#: SD-tree with Müller 2019's inverse-variance combination, ``sdtree-last`` the same with the 2017 paper's final image
+#: SD-tree with its last iterations combined (Müller 2019), ``sdtree-last`` the same with the 2017 paper's final image
 #: (its last iteration alone), ``sdtree-learned`` the same with a BSDF share learned per D-tree (Müller 2019's
 #: improved preset; :mod:`guiding.guides.trees.bsdf_fraction`). ``ours-uniform-proposals`` is ``ours`` with the paper's
 #: rejection loop (the same target, about five times the proposals; see GridGuide).

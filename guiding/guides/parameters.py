@@ -27,7 +27,8 @@ LEARNED_SHARE_RANGE = (MIN_BSDF_SHARE, 0.95)
 #: schedule; :mod:`guiding.render.progressive`): ``last``, the last iteration alone (Müller et al. 2017's paper); ``automatic``,
 #: the last iteration alone, training stopped early once the variance extrapolated to the end of the budget stops
 #: falling (Tom94's ``sampleCombination="automatic"``, the default of his guided_path.cpp); ``inverse-variance``,
-#: the last four iterations weighted by the inverse of their variance (Müller 2019, his "improved" preset).
+#: the last four iterations combined, as in Müller 2019's "improved" preset, but weighted by their spp, fixed before
+#: they are drawn (his inverse of each one's own estimated variance biased the image; :mod:`guiding.render.progressive`).
 COMBINE_LAST = "last"
 COMBINE_AUTOMATIC = "automatic"
 COMBINE_INVERSE_VARIANCE = "inverse-variance"

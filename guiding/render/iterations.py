@@ -1,6 +1,7 @@
 """The images of a render's iterations and the final image made of them (``combine``, see
 :mod:`guiding.render.progressive`): each iteration's running sums on the device, its variance estimated from the
-spread of its pass images, and the inverse-variance combination of the last ones."""
+spread of its pass images (for the ``automatic`` stopping rule and the statistics), and the combination of the last
+ones, weighted by their spp."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import numpy as np
 
 from guiding.guides.parameters import COMBINE_INVERSE_VARIANCE
 
-#: Iterations an inverse-variance combination weighs: the last four, as in Müller's implementation.
+#: Iterations the ``inverse-variance`` combination weighs: the last four, as in Müller's implementation.
 COMBINED_ITERATIONS = 4
 
 
@@ -59,16 +60,22 @@ def extrapolated_variance(variance: float | None, spent: float, left: float) -> 
     return variance * spent / left if variance else None
 
 
-def combine_iterations(images: list[np.ndarray], variances: list[float | None]) -> tuple[np.ndarray, list[float]]:
-    """``(Σ w_k I_k, [w_k])``: iteration images weighted by the inverse of their variance, ``w_k ∝ 1/V_k``,
-    normalised to sum to one. An image without a variance estimate gets weight 0; when none has one, the last
-    image alone is returned (weight 1). A zero estimate counts as none: it comes from an image in which no pass
-    found any light (a guide that has not yet found a small source), not from an exact one, and as 1/0 it would
-    take all the weight from the iterations that found the light (a black final image)."""
-    inverse = np.array([1.0 / v if v else 0.0 for v in variances])
-    if not inverse.any():
-        inverse[-1] = 1.0
-    weights = inverse / inverse.sum()
+def combine_iterations(images: list[np.ndarray], spps: list[int],
+                       learned: list[bool]) -> tuple[np.ndarray, list[float]]:
+    """``(Σ w_k I_k, [w_k])``: iteration images weighted by their spp, ``w_k = S_k / Σ S``, over the images whose
+    iteration was rendered with a guide that had learned (``learned``; the others get weight 0); when none was, the
+    last image alone (weight 1).
+
+    Unbiased: every iteration's image is an unbiased estimate given what the iterations before it taught the guide,
+    and its weight is fixed before it is rendered (by the guide's schedule, or under a seconds budget by the times
+    measured, never by the images), so ``E[Σ w_k I_k] = Σ E[w_k] μ = μ``. These are the inverse-variance weights
+    where the iterations' samples have equal variance; weights estimated from the images' own samples are not
+    unbiased: an iteration that caught a rare, bright path is brighter and gets less weight
+    (results/sdtree_combination/)."""
+    weights = np.array([s if trained else 0.0 for s, trained in zip(spps, learned)], dtype=np.float64)
+    if not weights.any():
+        weights[-1] = 1.0
+    weights /= weights.sum()
     image = sum(w * img for w, img in zip(weights, images) if w > 0)
     return image, [float(w) for w in weights]
 
@@ -82,6 +89,7 @@ class IterationImages:
         self.kept: deque = deque(maxlen=COMBINED_ITERATIONS if combine == COMBINE_INVERSE_VARIANCE else 1)
         self.first = self.second = None
         self.spp = self.passes = 0
+        self.closed = 0       # iterations closed so far: the first, rendered before the guide learned, is number 0
 
     def add_pass(self, image, spp: int) -> None:
         """Add a pass image (a device tensor) of ``spp`` samples per pixel (inside the pass's timed region)."""
@@ -111,17 +119,18 @@ class IterationImages:
         image, _, record.variance = self._current()
         self.kept.append((record, image))
         self.spp = self.passes = 0
+        self.closed += 1
 
     def image(self) -> tuple[np.ndarray, int, list[tuple[IterationStats | None, float]]]:
         """What the render shows now: (image (H, W, 3) float64, spp it is made of, [(iteration, weight)]), with
         the running iteration (record None) as the newest one."""
-        items = [(record, image, record.spp, record.variance) for record, image in self.kept]
+        items = [(record, image, record.spp, record.index > 0) for record, image in self.kept]
         if self.passes:
-            items.append((None, *self._current()))
+            items.append((None, *self._current()[:2], self.closed > 0))
         if self.combine != COMBINE_INVERSE_VARIANCE:
             record, image, spp, _ = items[-1]
             return image, spp, [(record, 1.0)]
         items = items[-COMBINED_ITERATIONS:]
-        image, weights = combine_iterations([i[1] for i in items], [i[3] for i in items])
+        image, weights = combine_iterations([i[1] for i in items], [i[2] for i in items], [i[3] for i in items])
         spp = sum(i[2] for i, w in zip(items, weights) if w > 0)
         return image, spp, [(i[0], w) for i, w in zip(items, weights)]

@@ -10,13 +10,15 @@ then (``combine``; by default the guide's own, :attr:`~guiding.guides.base.Guide
 
 * ``"last"``: the last iteration alone (Müller et al. 2017),
 * ``"automatic"``: the last iteration alone, with training stopped by the variance (below), or
-* ``"inverse-variance"``: the mean of the last :data:`~guiding.render.iterations.COMBINED_ITERATIONS` iterations weighted by the inverse of
-  each one's estimated variance (Müller 2019, "Practical Path Guiding in Production"; the same number of
-  iterations as his implementation). An iteration's variance is estimated from the spread of its pass images
-  (:func:`~guiding.render.iterations.iteration_variance`; Müller's implementation accumulates squared samples, which ``mi.render`` does not
-  return), so an iteration of a single pass has no estimate and no weight. The weights come from the same samples
-  as the images, so the combination is consistent rather than strictly unbiased; the tests bound the effect
-  against Mitsuba's ``path`` integrator.
+* ``"inverse-variance"``: the mean of the last :data:`~guiding.render.iterations.COMBINED_ITERATIONS` iterations
+  (the same number as Müller 2019, "Practical Path Guiding in Production"), each weighted by its spp
+  (:func:`~guiding.render.iterations.combine_iterations`): the inverse of its image's variance where its samples
+  have the variance of the others', a weight fixed before the iteration is rendered. Müller's weights, the inverse
+  of a variance estimated from the iteration's own samples, are biased: an iteration that caught a rare, bright
+  path is brighter and gets less weight, which pulled the image down where such paths carry the light
+  (``glass-lamp``; results/sdtree_combination/). Over the last four iterations the variance per sample changes
+  little on most scenes measured, so weighting by spp keeps most of their benefit. The first iteration, rendered
+  before the guide has learned anything (BSDF sampling alone), gets no weight.
 
 Every iteration's spp, time, hit rate, variance, weight and the guide's statistics at its end are in
 :attr:`RenderResult.iterations`.
