@@ -2,8 +2,11 @@
 and every kind of guide with ``nee`` converges to what Mitsuba's own ``path`` integrator computes, on tilted
 geometry, under an environment emitter and under a small sphere light."""
 
+from pathlib import Path
+
 import drjit as dr
 import mitsuba as mi
+
 import numpy as np
 import pytest
 
@@ -151,16 +154,31 @@ def _floor_lit_by(**emitters) -> mi.Scene:
 def test_nee_refuses_emitters_mitsuba_cannot_sample_in_one_line():
     """A surface that emits in one direction only (``directionalarea``: no emitter sample reaches it) and Mitsuba's
     ``timed_sunsky`` (whose directions it cannot sample in a traced call; with another emitter beside it Dr.Jit
-    aborts the process) are refused before the first pass, naming the emitter; without nee they render as before."""
+    aborts the process) are refused before the first pass, naming the emitter; without nee they render as before.
+    The ``timed_sunsky`` case runs in a child process: once a scene with that emitter is loaded, Mitsuba's ``path``
+    fails on every other scene of the process too."""
+    import subprocess
+    import sys
+
     one_way = {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate((0, 2, 0)).rotate((1, 0, 0), 90),
                "emitter": {"type": "directionalarea"}}
-    cases = {"'directionalarea' (it emits in one direction only": _floor_lit_by(lamp=one_way),
-             "'timed_sunsky' (Mitsuba ": _floor_lit_by(sky={"type": "timed_sunsky"}, bulb={"type": "point"})}
-    for named, scene in cases.items():
-        with pytest.raises(GuidingError) as refused:
-            _nee_integrator("ours").prepare(scene)
-        assert str(refused.value).startswith(f"nee cannot sample the emitter {named}") and "\n" not in str(refused.value)
-        GuidedPathIntegrator(mi.Properties(), guide=make_guide("ours")).prepare(scene)
+    with pytest.raises(GuidingError) as refused:
+        _nee_integrator("ours").prepare(_floor_lit_by(lamp=one_way))
+    messages = [str(refused.value)]
+    GuidedPathIntegrator(mi.Properties(), guide=make_guide("ours")).prepare(_floor_lit_by(lamp=one_way))
+    script = ("import sys; sys.path.insert(0, 'tests'); import mitsuba as mi; mi.set_variant('llvm_ad_rgb'); "
+              "from test_nee import _floor_lit_by, _nee_integrator; from guiding.errors import GuidingError; "
+              "scene = _floor_lit_by(sky={'type': 'timed_sunsky'}, bulb={'type': 'point'}); "
+              "_nee_integrator('brdf', nee=False).prepare(scene)\n"
+              "try: _nee_integrator('ours').prepare(scene)\n"
+              "except GuidingError as error: print(error)")
+    child = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                           cwd=Path(__file__).parent.parent)
+    assert child.returncode == 0, child.stderr[-2000:]
+    messages.append(child.stdout.rstrip("\n"))
+    named = ("'directionalarea' (it emits in one direction only", "'timed_sunsky' (Mitsuba ")
+    for name, message in zip(named, messages):
+        assert message.startswith(f"nee cannot sample the emitter {name}") and "\n" not in message, message
     for sampled in ({"type": "point"}, {"type": "spot"}, {"type": "directional"}, {"type": "constant"},
                     {"type": "sunsky"}, {"type": "projector"}, _sphere_light(), _environment()):
         _nee_integrator("brdf").prepare(_floor_lit_by(light=sampled))

@@ -147,7 +147,8 @@ class Guide:
         return bool(dr.any(self.guides(bsdfs, dr.full(mi.Bool, True, dr.width(bsdfs))))[0])
 
     def pdf(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, wo: mi.Vector3f,
-            active: mi.Bool) -> mi.Float:
+            active: mi.Bool, bsdf_pdf: mi.Float | None = None) -> mi.Float:
         """Density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si`` (the chi-square
-        tests compare it with the samples); BSDF sampling's by default."""
-        return bsdf.pdf(bsdf_ctx, si, wo, active)
+        tests compare it with the samples); BSDF sampling's by default. ``bsdf_pdf``: the BSDF's own density of
+        ``wo``, where the caller has it already (next-event estimation reads it with the BSDF's value)."""
+        return bsdf.pdf(bsdf_ctx, si, wo, active) if bsdf_pdf is None else bsdf_pdf

@@ -5,7 +5,10 @@
 PASS_SPP = 8
 #: Longest path, in vertices after the camera (Mitsuba's convention: 1 shows only directly visible emitters).
 MAX_DEPTH = 16
-#: Depth from which Russian roulette may end a path.
+#: Depth from which Russian roulette may end a path (the paper's protocol, without next-event estimation).
 RR_DEPTH = 8
+#: The same with next-event estimation: Mitsuba's ``path`` default, so that paths are as long as that integrator's
+#: and ``brdf`` with NEE costs what ``path`` costs per spp (results/nee_cost/).
+RR_DEPTH_NEE = 5
 #: Lower bound of Russian roulette's continuation probability ``q = max(max_rgb(β), RR_MIN)``.
 RR_MIN = 0.05

@@ -71,7 +71,7 @@ def hit_weight(scene: mi.Scene, si: mi.SurfaceInteraction3f, previous: PreviousV
     """MIS weight of the emission at ``si`` (or of the environment, where the ray escaped), found by the direction
     sampled at ``previous``: against the density with which emitter sampling at ``previous`` finds the same point."""
     ds = mi.DirectionSample3f(scene, si=si, ref=previous.si)
-    emitter_pdf = scene.pdf_emitter_direction(previous.si, ds, active & ~previous.delta)
+    emitter_pdf = scene.pdf_emitter_direction(previous.si, ds, active & ~previous.delta & (ds.emitter != None))
     return dr.select(previous.delta, 1.0, mis_weight(previous.pdf, emitter_pdf))
 
 
@@ -95,8 +95,8 @@ def sample_emitter(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteracti
     ds, emitter_weight = scene.sample_emitter_direction(si, sampler.next_2d(active), True, active)
     active &= ds.pdf != 0
     wo = si.to_local(ds.d)
-    value = bsdf.eval(bsdf_ctx, si, wo, active)
-    guide_pdf = guide.pdf(si, bsdf, bsdf_ctx, wo, active)
+    value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, active)
+    guide_pdf = guide.pdf(si, bsdf, bsdf_ctx, wo, active, bsdf_pdf)
     weight = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, guide_pdf))
     contribution = dr.select(active, weight * value * emitter_weight, 0)
     return EmitterSample(contribution, wo, ds.pdf, guide_pdf, weight)

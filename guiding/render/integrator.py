@@ -1,9 +1,11 @@
 """The guided unidirectional path tracer (paper protocol), registered as the Mitsuba integrator ``guided_path``.
 
 One Dr.Jit path loop serves every method: it asks a :class:`~guiding.guides.base.Guide` for each direction and
-tells it what each vertex saw. Following Kim & Kim (2021), emitters are found only by the sampled directions (no
-next-event estimation), paths stop at ``max_depth``, and Russian roulette starts at ``rr_depth`` with the
-continuation probability ``q = max(max_rgb(β), rr_min)``.
+tells it what each vertex saw. Following Kim & Kim (2021), emitters are found by default only by the sampled
+directions (no next-event estimation), paths stop at ``max_depth``, and Russian roulette starts at ``rr_depth`` with
+the continuation probability ``q = max(max_rgb(β), rr_min)``. With ``nee``, every vertex with a smooth BSDF also
+samples an emitter, combined with the sampled directions by MIS as in Mitsuba's ``path``, and Russian roulette starts
+at that integrator's depth, 5.
 
 Usable from XML (``<integrator type="guided_path"><string name="method" value="ours"/></integrator>``), from
 ``mi.load_dict({'type': 'guided_path', ...})``, or built in Python with an explicit guide object. ``mi.render``
@@ -32,7 +34,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     Parameters (XML / ``load_dict``):
       ``max_depth`` (int, 16): longest path, in vertices after the camera; 1 shows only directly visible
         emitters (Mitsuba's convention, so images compare with its ``path`` integrator).
-      ``rr_depth`` (int, 8): depth from which Russian roulette may end a path.
+      ``rr_depth`` (int, 8; 5 with ``nee``, as Mitsuba's ``path``): depth from which Russian roulette may end a path.
       ``rr_min`` (float, 0.05): lower bound of the continuation probability ``q = max(max_rgb(β), rr_min)``.
       ``method`` (str, "brdf"): a method name of :mod:`guiding.guides.methods`; ignored when a guide is passed.
       ``pass_spp`` (int, 8): samples per pixel of the first passes of ``mi.render``; the guide updates between
@@ -62,12 +64,12 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         props = props if props is not None else mi.Properties()
         super().__init__(props)
         self.max_depth = props.get("max_depth", defaults.MAX_DEPTH)
-        self.rr_depth = props.get("rr_depth", defaults.RR_DEPTH)
         self.rr_min = props.get("rr_min", defaults.RR_MIN)
         self.pass_spp = props.get("pass_spp", defaults.PASS_SPP)
         self.seconds = props.get("seconds", 0.0)
         self.growing_passes = props.get("growing_passes", True)
         self.nee = props.get("nee", False)
+        self.rr_depth = props.get("rr_depth", defaults.RR_DEPTH_NEE if self.nee else defaults.RR_DEPTH)
         self.learn_nee_light = props.get("learn_nee_light", True)
         if self.max_depth < 1:
             raise ValueError(f"max_depth must be >= 1, got {self.max_depth}")

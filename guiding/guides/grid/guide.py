@@ -234,9 +234,9 @@ class GridGuide(Guide):
     def guides(self, bsdf, active) -> mi.Bool:
         return active & guidable(bsdf, self.smooth)
 
-    def pdf(self, si, bsdf, bsdf_ctx, wo, active) -> mi.Float:
+    def pdf(self, si, bsdf, bsdf_ctx, wo, active, bsdf_pdf=None) -> mi.Float:
         """Density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si``."""
-        bsdf_pdf = bsdf.pdf(bsdf_ctx, si, wo, active)
+        bsdf_pdf = bsdf.pdf(bsdf_ctx, si, wo, active) if bsdf_pdf is None else bsdf_pdf
         if not self.trained:
             return bsdf_pdf
         vertex = self._vertex(si, bsdf, active, mark_visited=False)

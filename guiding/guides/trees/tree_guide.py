@@ -140,14 +140,15 @@ class TreeGuide(Guide):
             return active & mi.has_flag(flags, mi.BSDFFlags.Smooth)
         return active & ~mi.has_flag(flags, mi.BSDFFlags.Delta)
 
-    def pdf(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, wo, active=True):
+    def pdf(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, wo, active=True,
+            bsdf_pdf=None):
         """The density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si`` (of its
         smooth part: a delta lobe, which ``bsdf.pdf`` leaves out too, adds a point mass)."""
         active = mi.Bool(active)
         tree = self._locate(si.p, active)
         guided = self.guided_mask(tree, bsdf, active)
         wo_world = si.to_world(wo)
-        p_bsdf = bsdf.pdf(bsdf_ctx, si, wo, active)
+        p_bsdf = bsdf.pdf(bsdf_ctx, si, wo, active) if bsdf_pdf is None else bsdf_pdf
         p_tree = self._sampling.pdf_dir(tree, wo_world, guided)
         share = self._share(tree, guided)
         return dr.select(guided, share * p_bsdf + (1 - share) * p_tree, p_bsdf)
