@@ -280,6 +280,17 @@ def test_show_guide_draws_a_cell_and_the_first_vertex_of_a_pixel(saved_guide, ca
     assert _png(saved_guide / "px.png")[..., :3].std() > 10
 
 
+@pytest.mark.parametrize("method", ["ours", "sdtree"])
+def test_show_guide_draws_guides_trained_with_nee(tmp_path, capsys, method):
+    """A guide trained with next-event estimation learned the full incident radiance (docs/methods.md): it saves
+    and draws as without."""
+    out = tmp_path / method
+    assert main(["render", "--scene", "cornell", "--scale", "0.1", "--method", method, "--nee", "--spp", "64",
+                 "--save-guide", "--out", str(out), "--quiet"]) == 0
+    assert main(["show-guide", str(out), "--out", str(out / "guide.png")]) == 0
+    assert "cell" in capsys.readouterr().out and _png(out / "guide.png")[..., :3].std() > 10
+
+
 @pytest.mark.parametrize("args, message", [
     (["--cell", "512"], "cell 512 does not exist: the guide has cells 0..511"),
     (["--pixel", "26", "0"], "pixel (26, 0) is outside the 26x26 image"),

@@ -2,6 +2,7 @@
 and every kind of guide with ``nee`` converges to what Mitsuba's own ``path`` integrator computes, on tilted
 geometry, under an environment emitter and under a small sphere light."""
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import drjit as dr
@@ -13,6 +14,7 @@ import pytest
 from guiding.errors import GuidingError
 from guiding.experiments.testing import scene_vertices, train
 from guiding.experiments.validation import Z_LIMIT, pass_means, z_scores
+from guiding.guides.base import Guide
 from guiding.guides.methods import make_guide
 from guiding.render.emitter_sampling import PreviousVertex, hit_weight, mis_weight, sample_emitter
 from guiding.render.integrator import GuidedPathIntegrator
@@ -208,3 +210,87 @@ def test_the_plugin_takes_nee_from_xml_and_load_dict():
     assert (from_dict.nee, from_dict.learn_nee_light) == (True, False)
     assert (from_xml.nee, from_xml.learn_nee_light) == (True, True)
     assert not default.nee and "nee=True" in from_xml.to_string()
+
+
+# ============================================================================ what the guides learn
+LIGHT_AREA = 1.0                 # a rectangle scaled by 0.5: 1 × 1
+LIGHT_RADIANCE = 5.0
+
+
+@dataclass
+class _Segment:
+    """A spy's path state: the previous vertex and the density of the direction sampled there; sums per path of the
+    emission handed to ``record`` at the light and of what the hand computation says it must be."""
+
+    p: mi.Point3f = None
+    pdf: mi.Float = None
+    learned: mi.Color3f = None
+    expected: mi.Color3f = None
+    hits: mi.Float = None
+    DRJIT_STRUCT = {"p": mi.Point3f, "pdf": mi.Float, "learned": mi.Color3f, "expected": mi.Color3f, "hits": mi.Float}
+
+
+class _EmissionSpy(Guide):
+    """BSDF sampling that checks the emission the path loop hands ``record`` where a sampled direction found the
+    light: ``Le`` itself (``learn_nee_light``: Q stays the incident radiance, the targets of the rule tests), or
+    ``Le`` times the power heuristic's weight against emitter sampling, computed here by hand from the geometry."""
+
+    name = "emission-spy"
+
+    def __init__(self, learns_full_light: bool):
+        self.learns_full_light = learns_full_light
+        self.totals = dr.zeros(mi.Float, 4)     # Σ learned, Σ expected, Σ |learned − expected|, hits; over paths
+
+    def guides_any(self, scene):
+        return True
+
+    def records(self):
+        return True
+
+    def new_paths(self, size, max_depth):
+        return _Segment(dr.zeros(mi.Point3f, size), dr.zeros(mi.Float, size), dr.zeros(mi.Color3f, size),
+                        dr.zeros(mi.Color3f, size), dr.zeros(mi.Float, size))
+
+    def record(self, state, si, emitted, bs, weight, continues, active, vertex=None):
+        at_light = active & si.is_valid() & (si.p.z > 0.5) & (state.pdf > 0)
+        to_light = si.p - state.p
+        distance2 = dr.squared_norm(to_light)
+        light_pdf = distance2 / (dr.abs(dr.dot(si.n, to_light)) / dr.sqrt(distance2) * LIGHT_AREA)
+        weight_by_hand = dr.square(state.pdf) / (dr.square(state.pdf) + dr.square(light_pdf))
+        expected = LIGHT_RADIANCE * (1.0 if self.learns_full_light else weight_by_hand)
+        state.learned += dr.select(at_light, emitted, 0)
+        state.expected += dr.select(at_light, mi.Color3f(expected), 0)
+        state.hits += dr.select(at_light, 1.0, 0.0)
+        state.p, state.pdf = mi.Point3f(si.p), mi.Float(bs.pdf)
+        return state
+
+    def finish_paths(self, state):
+        for slot, value in enumerate((state.learned.x, state.expected.x, dr.abs(state.learned.x - state.expected.x),
+                                      state.hits)):
+            dr.scatter_reduce(dr.ReduceOp.Add, self.totals, value, slot)
+
+
+@pytest.mark.parametrize("learns_full_light", [True, False])
+def test_guides_learn_the_emission_their_rule_defines(learns_full_light):
+    """With nee, the emission a sampled direction finds reaches the learning rules unweighted by default, so that
+    their targets (SARSA's ``Le(x′) + (f·cos/p)·Q(x′, ω′)``, the Monte Carlo walk, Expected SARSA's) and Q, the
+    incident radiance, are those of the rule tests (tests/test_grid_learning.py); with ``learn_nee_light`` false,
+    times the MIS weight ``p_dir² / (p_dir² + p_light²)`` with ``p_light = d² / (|cos θ_light|·A)``, by hand here."""
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 50, "film": FILM,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=(0, -3, 0.5), target=(0, 0, 0), up=(0, 0, 1))},
+        "floor": {"type": "rectangle", "bsdf": WHITE, "to_world": mi.ScalarTransform4f().scale(3)},
+        "light": {"type": "rectangle", "emitter": {"type": "area", "radiance": {"type": "rgb", "value": LIGHT_RADIANCE}},
+                  "to_world": mi.ScalarTransform4f().translate((0, 0, 1)).rotate((1, 0, 0), 180).scale(0.5)}})
+    spy = _EmissionSpy(learns_full_light)
+    integrator = _nee_integrator("brdf", max_depth=2, freeze=False, learn_nee_light=learns_full_light)
+    integrator.guide = spy
+    integrator.prepare(scene)
+    integrator.render_pass(scene, scene.sensors()[0], seed=3, spp=32)
+    learned, expected, difference, hits = spy.totals.numpy()
+    assert hits > 1000                          # paths that found the light by a sampled direction
+    assert difference < 1e-4 * expected, (learned, expected, difference)
+    # Able to fail: the two choices hand the rules different emission (MIS weights below 1 on average).
+    full = LIGHT_RADIANCE * hits
+    assert learned == pytest.approx(full, rel=1e-5) if learns_full_light else learned < 0.9 * full
