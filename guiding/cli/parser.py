@@ -183,7 +183,7 @@ def _add_bench(commands) -> None:
 
 #: The demo's methods: the practical answer (Mitsuba's path against the guided methods with next-event
 #: estimation) beside the paper's comparison (BSDF sampling against ours, both without).
-DEMO_METHODS = "path,brdf,ours,ours+nee,sdtree+nee"
+DEMO_METHODS = "path,brdf,ours,ours+nee,ours-plus+nee,sdtree+nee"
 
 
 def _add_demo_and_validate(commands) -> None:
