@@ -1,4 +1,5 @@
-"""The guided unidirectional path tracer (paper protocol), registered as the Mitsuba integrator ``guided_path``.
+"""The guided unidirectional path tracer (the paper's protocol, next-event estimation optional), registered as the
+Mitsuba integrator ``guided_path``.
 
 One Dr.Jit path loop serves every method: it asks a :class:`~guiding.guides.base.Guide` for each direction and
 tells it what each vertex saw. Following Kim & Kim (2021), emitters are found by default only by the sampled
