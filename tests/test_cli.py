@@ -289,6 +289,10 @@ def test_show_guide_draws_guides_trained_with_nee(tmp_path, capsys, method):
                  "--save-guide", "--out", str(out), "--quiet"]) == 0
     assert main(["show-guide", str(out), "--out", str(out / "guide.png")]) == 0
     assert "cell" in capsys.readouterr().out and _png(out / "guide.png")[..., :3].std() > 10
+    # It learned: the density of its most trained cell is far from uniform.
+    state = guide_state.load(out / "guide.npz")
+    density = guide_state.density_image(state, guide_state.best_cell(state), 360, 180)
+    assert state["weight"].max() > 0 and density.max() > 3 * density.mean()
 
 
 @pytest.mark.parametrize("args, message", [
