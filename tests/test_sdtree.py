@@ -310,6 +310,10 @@ def test_inverse_variance_image_is_the_spp_weighted_mean_of_the_last_four_iterat
     assert result.spp_in_image == 16 + 32 + 64 + 128
     # Able to fail: the combination is far from the last iteration alone.
     assert np.abs(result.image - iterations[-1].image).mean() > 100 * 1e-5 * np.abs(expected).mean()
+    # The same render with combine="last" (the same passes) shows the last iteration alone.
+    last = render(cornell, GuidedPathIntegrator(guide=SDTreeGuide(base_spp=4)), Budget(spp=252, pass_spp=4), seed=6,
+                  combine="last")
+    np.testing.assert_allclose(last.image, iterations[-1].image, rtol=1e-5, atol=1e-7)
 
 
 def test_inverse_variance_weights_depend_on_the_schedule_alone(cornell):
@@ -361,7 +365,7 @@ def test_sdtree_combines_by_inverse_variance_unless_told(cornell):
     budget = Budget(spp=56, pass_spp=8)
     result = render(cornell, GuidedPathIntegrator(guide=make_guide("sdtree")), budget, seed=5)
     assert result.combine == "inverse-variance" and result.summary()["combine"] == "inverse-variance"
-    # iterations of 8, 16 and 32 spp: the first, a single pass, has no variance estimate and no weight
+    # iterations of 8, 16 and 32 spp: the first, rendered before the guide learned, has no weight
     assert [it.weight > 0 for it in result.iterations] == [False, True, True]
     last = render(cornell, GuidedPathIntegrator(guide=make_guide("sdtree-last")), budget, seed=5)
     assert last.combine == "last" and [it.weight for it in last.iterations] == [0, 0, 1]

@@ -46,3 +46,9 @@ def test_sdtree_baseline_command_writes_its_tables(tmp_path):
         assert "python -m guiding sdtree-baseline --part" in text and "## Runs" in text
     # the references are cached in the harness's layout
     assert (tmp_path / "sdtree_baseline" / "references" / "cornell" / "x0.05-spp16" / "image.exr").exists()
+
+
+def test_seconds_budget_is_for_the_combination_study_only(tmp_path, capsys):
+    assert main(["sdtree-baseline", "--out", str(tmp_path / "out"), "--part", "threshold", "--seconds", "5"]) == 2
+    assert "--seconds is for --part combination only" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

@@ -226,7 +226,7 @@ def _add_sdtree_baseline(commands) -> None:
                           "results/sdtree_bsdf_share.md; combination: the final image of sdtree and sdtree-learned "
                           "from their last iterations, weighted by spp, by their own variance or by the other half's, "
                           "against the last alone, on glass-lamp and the shared scenes, "
-                          "results/sdtree_combination/equal_spp.md)")
+                          "results/sdtree_combination/equal_spp.md, or equal_time.md with --seconds)")
     baseline.add_argument("--scene", default="veach-ajar")
     baseline.add_argument("--scale", type=_positive_float, default=0.0625,
                           help="resolution scale of the equal-spp table (default 0.0625: 80x45)")

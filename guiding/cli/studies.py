@@ -85,6 +85,8 @@ def command_sdtree_baseline(args) -> None:
                            "comma-separated numbers expected") from None
     if not seeds or not all(scale > 0 for scale in scales):
         raise GuidingError("sdtree-baseline: give at least one seed, and scales > 0")
+    if args.seconds is not None and args.part != "combination":
+        raise GuidingError("sdtree-baseline: --seconds is for --part combination only")
     from guiding.bench.command import parse_scene_list
     from guiding.experiments.sdtree_baseline import PRESET_SCENES, equal_spp_table, scenes_table, threshold_table
 
@@ -102,9 +104,7 @@ def command_sdtree_baseline(args) -> None:
 
     device = device_name(variant)
     cache = out / "sdtree_baseline"
-    common = (f"--scene {args.scene} --spp {args.spp} --seeds {args.seeds}"
-              + (f" --variant {args.variant}" if args.variant != "auto" else "")
-              + (f" --threads {args.threads}" if args.threads else ""))
+    common = f"--scene {args.scene} --spp {args.spp} --seeds {args.seeds}" + _backend_options(args)
     if args.part in ("all", "equal-spp"):
         summary, runs = equal_spp_table(args.scene, args.scale, args.spp, seeds, args.reference_spp, cache)
         command = (f"python -m guiding sdtree-baseline --part equal-spp {common} --scale {args.scale:g} "
@@ -129,7 +129,7 @@ def command_sdtree_baseline(args) -> None:
         command = (f"python -m guiding sdtree-baseline --part {part} --spp {args.spp} --seeds {args.seeds} "
                    f"--reference-spp {args.reference_spp}"
                    + (f" --preset-scenes {args.preset_scenes}" if args.preset_scenes else "")
-                   + (f" --threads {args.threads}" if args.threads else ""))
+                   + _backend_options(args))
         write_table(summary, out / study.output, f"{study.title} at equal spp: {scenes}, {args.spp} spp, seeds "
                     f"{args.seeds}, MAE against a {args.reference_spp}-spp `path` reference (`mae_vs_first`: "
                     "relative to `brdf`; `break_even_cost`: the cost per spp relative to `brdf`'s below which a row "
@@ -138,6 +138,12 @@ def command_sdtree_baseline(args) -> None:
         print(summary.to_string(index=False))
     if combination:
         _combination_study(args, combination_scenes, seeds, out, cache, device)
+
+
+def _backend_options(args) -> str:
+    """The ``--variant`` and ``--threads`` of a recorded command, where they differ from the defaults."""
+    return ((f" --variant {args.variant}" if args.variant != "auto" else "")
+            + (f" --threads {args.threads}" if args.threads else ""))
 
 
 def _combination_study(args, scenes: list[tuple[str, float]], seeds: tuple[int, ...], out, cache, device: str) -> None:
@@ -153,7 +159,7 @@ def _combination_study(args, scenes: list[tuple[str, float]], seeds: tuple[int, 
     command = (f"python -m guiding sdtree-baseline --part combination {budget} --seeds {args.seeds} "
                f"--reference-spp {args.reference_spp}"
                + (f" --preset-scenes {args.preset_scenes}" if args.preset_scenes else "")
-               + (f" --threads {args.threads}" if args.threads else ""))
+               + _backend_options(args))
     listed = ", ".join(f"{name} at scale {scale:g}" for name, scale in scenes)
     spent = f"{args.seconds:g} s (first {EXCLUDED_PASSES} passes not counted)" if timed else f"{args.spp} spp"
     write_table(summary, out / "sdtree_combination" / ("equal_time" if timed else "equal_spp"), "The SD-tree's "

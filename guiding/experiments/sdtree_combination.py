@@ -80,11 +80,12 @@ def split_halves_image(passes: list[tuple[int, int, np.ndarray]]) -> np.ndarray:
     a half has no estimate)."""
     halves: tuple[list, list] = ([], [])
     for k in sorted({iteration for _, iteration, _ in passes})[-COMBINED_ITERATIONS:]:
-        for j, record in enumerate(record for record in passes if record[1] == k):
+        records = [record for record in passes if record[1] == k]
+        if len(records) < 2:     # an iteration of one pass has nothing for the second half
+            continue
+        for j, record in enumerate(records):
             halves[j % 2].append(record)
     first, second = (iteration_images(half) for half in halves)
-    if len(first) != len(second):   # an iteration of one pass: the second half lacks it
-        first = first[len(first) - len(second):]
     weights_first, weights_second = _inverse_variance_weights(first), _inverse_variance_weights(second)
     if not (weights_first.any() and weights_second.any()):
         return iteration_images(passes)[-1].image

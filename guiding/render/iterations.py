@@ -55,8 +55,9 @@ def iteration_variance(first: np.ndarray, second: np.ndarray, spp: int, passes: 
 def extrapolated_variance(variance: float | None, spent: float, left: float) -> float | None:
     """The variance of the final image if the distribution of an iteration whose image has ``variance`` after
     ``spent`` spp (or seconds) had rendered the ``left`` spp (seconds) left when it started: ``variance·spent /
-    left`` (the variance of a mean falls as 1/samples). None without a variance estimate, or with a zero one (no
-    pass found light: :func:`combine_iterations`), which would stop training as soon as the guide finds the light."""
+    left`` (the variance of a mean falls as 1/samples). None without a variance estimate, or with a zero one: it
+    comes from an iteration in which no pass found light, not from an exact estimate, and a rise from it would stop
+    training as soon as the guide finds the light."""
     return variance * spent / left if variance else None
 
 
@@ -89,7 +90,6 @@ class IterationImages:
         self.kept: deque = deque(maxlen=COMBINED_ITERATIONS if combine == COMBINE_INVERSE_VARIANCE else 1)
         self.first = self.second = None
         self.spp = self.passes = 0
-        self.closed = 0       # iterations closed so far: the first, rendered before the guide learned, is number 0
 
     def add_pass(self, image, spp: int) -> None:
         """Add a pass image (a device tensor) of ``spp`` samples per pixel (inside the pass's timed region)."""
@@ -105,28 +105,28 @@ class IterationImages:
         self.spp += spp
         self.passes += 1
 
-    def _current(self) -> tuple[np.ndarray, int, float | None]:
-        first = self.first.numpy()[..., :3].astype(np.float64)
-        second = self.second.numpy()[..., :3].astype(np.float64)
-        return first / self.spp, self.spp, iteration_variance(first, second, self.spp, self.passes)
+    def _current_image(self) -> np.ndarray:
+        return self.first.numpy()[..., :3].astype(np.float64) / self.spp
 
     def variance(self) -> float | None:
         """The estimated variance of the current iteration's image (:func:`iteration_variance`)."""
-        return self._current()[2]
+        first = self.first.numpy()[..., :3].astype(np.float64)
+        second = self.second.numpy()[..., :3].astype(np.float64)
+        return iteration_variance(first, second, self.spp, self.passes)
 
     def close(self, record: IterationStats) -> None:
         """End the current iteration: keep its image, fill in its variance; the next pass starts a new one."""
-        image, _, record.variance = self._current()
-        self.kept.append((record, image))
+        record.variance = self.variance()
+        self.kept.append((record, self._current_image()))
         self.spp = self.passes = 0
-        self.closed += 1
 
     def image(self) -> tuple[np.ndarray, int, list[tuple[IterationStats | None, float]]]:
         """What the render shows now: (image (H, W, 3) float64, spp it is made of, [(iteration, weight)]), with
         the running iteration (record None) as the newest one."""
         items = [(record, image, record.spp, record.index > 0) for record, image in self.kept]
         if self.passes:
-            items.append((None, *self._current()[:2], self.closed > 0))
+            # The running iteration learned from the guide's training if any iteration closed before it.
+            items.append((None, self._current_image(), self.spp, bool(self.kept)))
         if self.combine != COMBINE_INVERSE_VARIANCE:
             record, image, spp, _ = items[-1]
             return image, spp, [(record, 1.0)]

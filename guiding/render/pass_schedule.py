@@ -4,8 +4,9 @@ Passes start at the budget's ``pass_spp`` and grow, at most to twice the largest
 a pass is foreseen from one of at least half its size), as far as every limit allows: the guide's next update
 (:meth:`~guiding.guides.base.Guide.update_due`: a guide that learns after every pass, such as the paper's ``ours``,
 keeps passes of ``pass_spp``; BSDF sampling and a frozen guide have no such limit), an eighth of the guide's
-current iteration (each iteration's variance is estimated from its passes), the next snapshot, the spp or seconds
-left in the budget, and :data:`MAX_PASS_PATHS` paths per launch.
+current iteration (each iteration's variance, which the ``automatic`` rule stops training on and the statistics
+report, is estimated from its passes), the next snapshot, the spp or seconds left in the budget, and
+:data:`MAX_PASS_PATHS` paths per launch.
 
 Why: every pass pays for tracing the path loop in Python, launching its kernel and the guide's update, a large
 share of a pass at the small sizes of ``config/paper.yaml``, and a launch that small keeps the threads unevenly busy
@@ -22,8 +23,8 @@ from dataclasses import dataclass
 #: Most paths a growing pass launches (pixels × spp), about those of one 8-spp pass at 1280 × 720 (7.4 M), so that
 #: a pass grows only where the default pass of a full-size image would fit (a ``pass_spp`` pass is never cut).
 MAX_PASS_PATHS = 1 << 23
-#: Least passes of an iteration (SD-tree): its variance, which weighs it in the final image and decides when training
-#: stops, is estimated from its pass images (7 degrees of freedom per pixel; fixed passes had 2^k − 1).
+#: Least passes of an iteration (SD-tree): its variance, which decides when the ``automatic`` rule stops training and
+#: the statistics report, is estimated from its pass images (7 degrees of freedom per pixel; fixed passes had 2^k − 1).
 MIN_ITERATION_PASSES = 8
 
 
