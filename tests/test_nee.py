@@ -17,6 +17,7 @@ from guiding.experiments.validation import Z_LIMIT, pass_means, z_scores
 from guiding.guides.base import Guide
 from guiding.guides.methods import make_guide
 from guiding.render.emitter_sampling import PreviousVertex, hit_weight, mis_weight, sample_emitter
+from guiding.render import defaults
 from guiding.render.integrator import GuidedPathIntegrator
 from guiding.scenes import load_scene
 
@@ -101,6 +102,13 @@ def test_mis_weights_of_emitter_and_guide_sampling_sum_to_one(scenes, scene_name
     # Not by construction (an emitter sample weighted 1 and a found emission weighted 0 would sum to one too): the
     # guide's direction takes a share somewhere, if a small one where the light is small.
     assert (1 - nee.weight.numpy()[lit.numpy()]).max() > 1e-5
+    # The loop weighs a found emission with the density `sample` reports (bs.pdf), the weights above use `pdf`:
+    # the two agree at the directions the guide draws.
+    bs, _ = guide.sample(scene, sampler, si, bsdf, ctx, active)
+    drawn = ((bs.pdf > 0) & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)).numpy()
+    assert drawn.sum() > 1000
+    np.testing.assert_allclose(guide.pdf(si, bsdf, ctx, bs.wo, active).numpy()[drawn], bs.pdf.numpy()[drawn],
+                               rtol=1e-4)
 
 
 def test_power_heuristic():
@@ -210,6 +218,8 @@ def test_the_plugin_takes_nee_from_xml_and_load_dict():
     assert (from_dict.nee, from_dict.learn_nee_light) == (True, False)
     assert (from_xml.nee, from_xml.learn_nee_light) == (True, True)
     assert not default.nee and "nee=True" in from_xml.to_string()
+    # With nee, paths are as long as Mitsuba's path's: Russian roulette from its depth.
+    assert (from_xml.rr_depth, default.rr_depth) == (defaults.RR_DEPTH_NEE, defaults.RR_DEPTH) == (5, 8)
 
 
 # ============================================================================ what the guides learn

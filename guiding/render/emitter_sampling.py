@@ -60,13 +60,6 @@ class PreviousVertex:
         return PreviousVertex(dr.zeros(mi.Interaction3f, size), dr.zeros(mi.Float, size), dr.full(mi.Bool, True, size))
 
 
-@dataclass
-class NoPreviousVertex:
-    """The loop state of a path loop without next-event estimation (an empty Dr.Jit PyTree)."""
-
-    DRJIT_STRUCT = {}
-
-
 def hit_weight(scene: mi.Scene, si: mi.SurfaceInteraction3f, previous: PreviousVertex, active: mi.Bool) -> mi.Float:
     """MIS weight of the emission at ``si`` (or of the environment, where the ray escaped), found by the direction
     sampled at ``previous``: against the density with which emitter sampling at ``previous`` finds the same point."""

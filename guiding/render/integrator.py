@@ -4,9 +4,9 @@ Mitsuba integrator ``guided_path``.
 One Dr.Jit path loop serves every method: it asks a :class:`~guiding.guides.base.Guide` for each direction and
 tells it what each vertex saw. Following Kim & Kim (2021), emitters are found by default only by the sampled
 directions (no next-event estimation), paths stop at ``max_depth``, and Russian roulette starts at ``rr_depth`` with
-the continuation probability ``q = max(max_rgb(β), rr_min)``. With ``nee``, every vertex with a smooth BSDF also
-samples an emitter, combined with the sampled directions by MIS as in Mitsuba's ``path``, and Russian roulette starts
-at that integrator's depth, 5.
+the continuation probability ``q = max(max_rgb(β), rr_min)``. With ``nee``, every vertex the path continues from
+with a smooth BSDF also samples an emitter, combined with the sampled directions by MIS as in Mitsuba's ``path``, and
+Russian roulette starts at that integrator's depth, 5.
 
 Usable from XML (``<integrator type="guided_path"><string name="method" value="ours"/></integrator>``), from
 ``mi.load_dict({'type': 'guided_path', ...})``, or built in Python with an explicit guide object. ``mi.render``
@@ -20,11 +20,10 @@ import drjit as dr
 import mitsuba as mi
 
 from guiding.errors import GuidingError
-from guiding.guides import Guide
+from guiding.guides import Guide, NoPathState
 from guiding.guides.methods import make_guide
 from guiding.render import defaults
-from guiding.render.emitter_sampling import (NoPreviousVertex, PreviousVertex, hit_weight, sample_emitter,
-                                             unsampleable_emitters)
+from guiding.render.emitter_sampling import PreviousVertex, hit_weight, sample_emitter, unsampleable_emitters
 from guiding.render.frozen_pass import FrozenPasses, recordable
 from guiding.render.progressive import Budget, render
 
@@ -44,10 +43,10 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
       ``seconds`` (float, 0): when positive, ``mi.render`` renders for this many seconds instead of ``spp``.
       ``freeze`` (bool, true): passes after the first of each configuration replay the path loop's recorded
         kernels instead of tracing it again (:mod:`guiding.render.frozen_pass`); false traces every pass.
-      ``nee`` (bool, false): next-event estimation: at every vertex with a smooth BSDF component, one emitter
-        sample, weighted against the guide's own density by the power heuristic (as Mitsuba's ``path``;
-        :mod:`guiding.render.emitter_sampling`); false is the paper's protocol (emitters found only by sampled
-        directions).
+      ``nee`` (bool, false): next-event estimation: at every vertex the path continues from (below ``max_depth``) with
+        a smooth BSDF component, one emitter sample, weighted against the guide's own density by the power heuristic
+        (as Mitsuba's ``path``; :mod:`guiding.render.emitter_sampling`); Russian roulette then starts at depth 5, as
+        there. False is the paper's protocol (emitters found only by sampled directions).
       ``learn_nee_light`` (bool, true): with ``nee``, the guide learns the full incident radiance its sampled
         directions bring back, light that emitter sampling also finds included; false: only the share of emission
         that next-event estimation leaves to sampled directions (their MIS weight).
@@ -152,7 +151,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         active = dr.full(mi.Bool, True, dr.width(ray.o)) & active
         started = mi.Bool(active)     # The lanes that trace a path (for the hit rate)
         path_state = guide.new_paths(dr.width(ray.o), self.max_depth)
-        previous = PreviousVertex.camera(dr.width(ray.o)) if self.nee else NoPreviousVertex()
+        previous = PreviousVertex.camera(dr.width(ray.o)) if self.nee else NoPathState()   # empty loop state
 
         while dr.hint(active, max_iterations=self.max_depth, label="Guided path tracer"):
             si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0))
