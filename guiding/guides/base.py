@@ -109,7 +109,8 @@ class Guide:
 
     def locate(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, active: mi.Bool):
         """Where vertex ``si`` lies in the guide's structure (the SD-tree's S-tree leaf, say), found once for
-        ``sample`` and ``record`` (the path loop hands it to both); None for a guide that finds nothing ahead."""
+        ``pdf``, ``sample`` and ``record`` (the path loop hands it to all three); None for a guide that finds
+        nothing ahead."""
         return None
 
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr,
@@ -147,8 +148,9 @@ class Guide:
         return bool(dr.any(self.guides(bsdfs, dr.full(mi.Bool, True, dr.width(bsdfs))))[0])
 
     def pdf(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, wo: mi.Vector3f,
-            active: mi.Bool, bsdf_pdf: mi.Float | None = None) -> mi.Float:
+            active: mi.Bool, bsdf_pdf: mi.Float | None = None, vertex=None) -> mi.Float:
         """Density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si`` (the chi-square
         tests compare it with the samples); BSDF sampling's by default. ``bsdf_pdf``: the BSDF's own density of
-        ``wo``, where the caller has it already (next-event estimation reads it with the BSDF's value)."""
+        ``wo``, where the caller has it already (next-event estimation reads it with the BSDF's value); ``vertex``: what
+        :meth:`locate` found at ``si`` (None: the guide finds it itself)."""
         return bsdf.pdf(bsdf_ctx, si, wo, active) if bsdf_pdf is None else bsdf_pdf

@@ -81,15 +81,16 @@ class EmitterSample:
 
 
 def sample_emitter(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr,
-                   bsdf_ctx: mi.BSDFContext, guide, active: mi.Bool) -> EmitterSample:
+                   bsdf_ctx: mi.BSDFContext, guide, active: mi.Bool, vertex=None) -> EmitterSample:
     """Next-event estimation at ``si`` for the lanes ``active`` whose BSDF has a smooth component: an emitter sample
-    (visibility tested), the BSDF's value there and its MIS weight against ``guide.pdf`` (the loop's own density)."""
+    (visibility tested), the BSDF's value there and its MIS weight against ``guide.pdf`` (the loop's own density;
+    ``vertex``: what ``guide.locate`` found at ``si``, None: the guide finds it itself)."""
     active = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
     ds, emitter_weight = scene.sample_emitter_direction(si, sampler.next_2d(active), True, active)
     active &= ds.pdf != 0
     wo = si.to_local(ds.d)
     value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, active)
-    guide_pdf = guide.pdf(si, bsdf, bsdf_ctx, wo, active, bsdf_pdf)
+    guide_pdf = guide.pdf(si, bsdf, bsdf_ctx, wo, active, bsdf_pdf, vertex)
     weight = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, guide_pdf))
     contribution = dr.select(active, weight * value * emitter_weight, 0)
     return EmitterSample(contribution, wo, ds.pdf, guide_pdf, weight)

@@ -172,13 +172,15 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
             depth[si.is_valid()] += 1
             continues = active & si.is_valid() & (depth < self.max_depth)
 
-            # ------------------ Emitter sampling (next-event estimation) ------------------
+            # The vertex in the guide's structure, found once for the emitter sample's density, the sample, the record
             bsdf = si.bsdf(ray)
+            vertex = guide.locate(si, bsdf, continues)
+
+            # ------------------ Emitter sampling (next-event estimation) ------------------
             if dr.hint(self.nee, mode="scalar"):
-                L += β * sample_emitter(scene, sampler, si, bsdf, bsdf_ctx, guide, continues).contribution
+                L += β * sample_emitter(scene, sampler, si, bsdf, bsdf_ctx, guide, continues, vertex).contribution
 
             # ------------------- Direction sampling (the guide) -------------------
-            vertex = guide.locate(si, bsdf, continues)
             bs, weight = guide.sample(scene, sampler, si, bsdf, bsdf_ctx, continues, vertex)
             weight = dr.select(continues, weight, 0)
 

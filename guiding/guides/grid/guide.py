@@ -234,8 +234,10 @@ class GridGuide(Guide):
     def guides(self, bsdf, active) -> mi.Bool:
         return active & guidable(bsdf, self.smooth)
 
-    def pdf(self, si, bsdf, bsdf_ctx, wo, active, bsdf_pdf=None) -> mi.Float:
-        """Density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si``."""
+    def pdf(self, si, bsdf, bsdf_ctx, wo, active, bsdf_pdf=None, vertex=None) -> mi.Float:
+        """Density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si``. The sampler's
+        vertex (cell, pair, memo) is looked up here again: ``locate``'s :class:`GridVertex` holds only the guided mask
+        and the albedo."""
         bsdf_pdf = bsdf.pdf(bsdf_ctx, si, wo, active) if bsdf_pdf is None else bsdf_pdf
         if not self.trained:
             return bsdf_pdf

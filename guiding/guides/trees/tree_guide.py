@@ -141,11 +141,11 @@ class TreeGuide(Guide):
         return active & ~mi.has_flag(flags, mi.BSDFFlags.Delta)
 
     def pdf(self, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, wo, active=True,
-            bsdf_pdf=None):
+            bsdf_pdf=None, vertex=None):
         """The density (solid angle) with which :meth:`sample` draws local direction ``wo`` at ``si`` (of its
         smooth part: a delta lobe, which ``bsdf.pdf`` leaves out too, adds a point mass)."""
         active = mi.Bool(active)
-        tree = self._locate(si.p, active)
+        tree = self._locate(si.p, active) if vertex is None else vertex.tree   # locate's lanes hold ``active``'s
         guided = self.guided_mask(tree, bsdf, active)
         wo_world = si.to_world(wo)
         p_bsdf = bsdf.pdf(bsdf_ctx, si, wo, active) if bsdf_pdf is None else bsdf_pdf
