@@ -118,6 +118,8 @@ def test_reference_writes_outputs_and_strict_json(tmp_path):
      "--set expects FIELD=VALUE, got 'statistics'"),
     (["--scene", "cornell", "--method", "brdf", "--set", "bsdf_fraction=0.5", "--spp", "8"],
      "method 'brdf' takes no parameters, got bsdf_fraction"),
+    (["--scene", "cornell", "--method", "ours", "--spp", "8", "--path-fallback"],
+     "--path-fallback hands passes to Mitsuba's path, which samples emitters: add --nee"),
 ])
 def test_bad_render_input(tmp_path, capsys, args, message):
     out = tmp_path / "out"

@@ -264,8 +264,8 @@ def test_ci_practical_table_is_each_method_against_path(ci_run):
     workdir, _ = ci_run
     out = workdir / "results" / "ci"
     table = pd.read_csv(out / "tables" / "practical.csv").set_index("method")
-    assert list(table.index) == ["path", "ours"] and table.nee.tolist() == [True, True]
-    assert table.label.tolist() == ["Mitsuba path", "Ours + NEE"]
+    assert list(table.index) == ["path", "ours", "ours-fallback"] and table.nee.all()
+    assert table.label.tolist() == ["Mitsuba path", "Ours + NEE", "Ours (path fallback) + NEE"]
     metrics = {method: json.loads((out / "renders" / "practical" / "cornell" / method / "1s" / "seed0" /
                                    "metrics.json").read_text()) for method in ("path", "ours")}
     cost = {m: r["mae"] ** 2 * r["stats"]["budget_seconds_counted"] for m, r in metrics.items()}
@@ -281,8 +281,15 @@ def test_ci_practical_table_is_each_method_against_path(ci_run):
     et = pd.read_csv(out / "tables" / "equal_time.csv")
     assert not et.nee.any() and (et.spp_counted == et.spp - 8).all()
     text = (out / "tables" / "practical.md").read_text()
-    assert "| scene | Mitsuba path | Ours + NEE |" in text and "| **cornell** | 1× |" in text
+    assert "| scene | Mitsuba path | Ours + NEE | Ours (path fallback) + NEE |" in text and "| **cornell** | 1× |" in text
     assert "**geometric mean**" in text and "Next-event estimation in every render." in text
+    # The fallback's decision: in stats.json, in the runs table, and its count in the practical table.
+    fallback = json.loads((out / "renders" / "practical" / "cornell" / "ours-fallback" / "1s" / "seed0" /
+                           "metrics.json").read_text())["stats"]["path_fallback"]
+    assert fallback["chosen"] in ("guide", "path") and fallback["guide_mae"] > 0 and fallback["path_mae"] > 0
+    runs = pd.read_csv(out / "tables" / "practical_runs.csv").set_index("method")
+    assert runs.loc["ours-fallback", "fallback"] == fallback["chosen"] and pd.isna(runs.loc["ours", "fallback"])
+    assert f"| **cornell** |  |  | {fallback['chosen']} 1/1 |" in text
     log = (out / "logs" / "render_timed" / "practical" / "cornell" / "ours" / "1s" / "seed0.log").read_text()
     assert "ours with nee on cornell: " in log
 

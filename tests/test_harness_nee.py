@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from guiding.experiments import tables
-from guiding.experiments.configuration import load_config
+from guiding.experiments.configuration import ConfigError, load_config
 from guiding.experiments.plan import plan
 from test_harness_outputs import _row, _spec
 
@@ -24,8 +24,9 @@ def ci_config() -> dict:
 
 
 def test_paper_config_runs_the_practical_experiment_on_every_scene():
-    """`practical`: Mitsuba's path against sdtree, ours and ours-plus with next-event estimation, at the paper's
-    equal-time budget, on the four shared scenes at the paper's scales and on every shipped scene at 1/8."""
+    """`practical`: Mitsuba's path against sdtree, ours and ours-plus with next-event estimation, and ours-plus with
+    the path fallback, at the paper's equal-time budget, on the four shared scenes at the paper's scales and on every
+    shipped scene at 1/8."""
     the_plan = plan(load_config(PAPER_CONFIG), check=False)
     runs = the_plan.experiment_runs("practical")
     shipped = {folder.name for folder in (ROOT / "scenes").iterdir() if (folder / "scene.xml").is_file()}
@@ -34,16 +35,19 @@ def test_paper_config_runs_the_practical_experiment_on_every_scene():
     assert all(scales[scene] == 0.125 for scene in shipped | {"cornell-box"})
     assert all(scales[scene] == 0.0625 for scene in ("veach-ajar", "staircase2", "living-room"))
     assert scales["cornell-box"] == the_plan.config["scenes"]["cornell-box"]["scale"]
-    assert {r.method for r in runs} == {"path", "sdtree", "ours", "ours-plus"} and {r.seed for r in runs} == {0, 1, 2}
-    assert len(runs) == len(scales) * 4 * 3 and all(r.timed and r.samples_emitters for r in runs)
+    methods = {"path", "sdtree", "ours", "ours-plus", "ours-plus-fallback"}
+    assert {r.method for r in runs} == methods and {r.seed for r in runs} == {0, 1, 2}
+    assert len(runs) == len(scales) * len(methods) * 3 and all(r.timed and r.samples_emitters for r in runs)
     equal_time = the_plan.experiment_runs("equal_time")[0]
     for run in runs:
         args = the_plan.render_args(run)
         assert "--seconds 10 --exclude-passes 10" in args and run.budget == equal_time.budget
         if run.method == "path":   # Mitsuba's path tracer, which always samples emitters: no --nee to ignore
             assert "--method path " in args and "--nee" not in args and run.label == "Mitsuba path"
+        elif run.method == "ours-plus-fallback":
+            assert "--method ours-plus --nee --path-fallback " in args and run.path_fallback
         else:
-            assert f"--method {run.method} --nee " in args and run.label.endswith(" + NEE")
+            assert f"--method {run.method} --nee " in args and run.label.endswith(" + NEE") and not run.path_fallback
     assert not any(r.nee or "--nee" in the_plan.render_args(r) for r in the_plan.runs if r.experiment != "practical")
     assert f"{the_plan.out}/figures/practical_comparison.png" in the_plan.figure_files()
 
@@ -99,3 +103,34 @@ def test_practical_table_is_efficiency_relative_to_path():
     assert "| **cornell-box** | 0.042 ± 0.0028 | 0.021 ± 0.0014 | 0.0525 ± 0.0035 |" in text
     assert "920 spp, 12.5 s" in text and "(MAE of path / MAE of the method)²" in text
     assert len(runs) == 12 and runs.nee.all()
+
+
+def test_a_path_fallback_needs_an_experiment_with_nee():
+    config = ci_config()
+    config["methods"]["ours-fallback"] = {"method": "ours", "path_fallback": True}
+    config["experiments"]["equal_time"]["methods"] = ["brdf", "ours-fallback"]
+    with pytest.raises(ConfigError, match="experiments.equal_time: method 'ours-fallback' falls back to Mitsuba's "
+                                          "path .* set nee: true"):
+        plan(config, check=False)
+
+
+def test_practical_table_says_what_the_path_fallback_chose():
+    config = load_config(PAPER_CONFIG)
+    config["experiments"]["practical"].update(scenes=["cornell-box", "veach-ajar"],
+                                              methods=["path", "ours-plus", "ours-plus-fallback"])
+    spec = _spec(config, "practical")
+    chosen = {"cornell-box": ["path", "path", "guide"], "veach-ajar": ["guide"] * 3}
+    rows = []
+    for scene in spec["scenes"]:
+        for method in spec["methods"]:
+            for seed in range(3):
+                row = _row("practical", scene, method, seed, 0.02, budget="10s", spp=1000)
+                row["stats"].update(budget={"seconds": 10, "pass_spp": 8, "exclude_passes": 10},
+                                    budget_seconds_counted=10.0)
+                if method == "ours-plus-fallback":
+                    row["stats"]["path_fallback"] = {"chosen": chosen[scene][seed]}
+                rows.append(row)
+    _, text, runs = tables.build(spec, rows)
+    assert runs.fallback.notna().sum() == 6
+    assert "| **cornell-box** |  |  | path 2/3, guide 1/3 |" in text
+    assert "| **veach-ajar** |  |  | guide 3/3 |" in text

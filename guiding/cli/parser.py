@@ -115,6 +115,9 @@ def _add_render(commands) -> None:
     budget.add_argument("--seconds", type=_positive_float, help="time budget in seconds")
     render.add_argument("--nee", action="store_true",
                         help="next-event estimation with MIS against the method's own density (`path` always has it)")
+    render.add_argument("--path-fallback", action="store_true",
+                        help="with --nee: render the rest of the budget with Mitsuba's path where guiding does not "
+                        "pay (checked after a tenth of the budget) or where the method has nothing to guide")
     render.add_argument("--exclude-passes", type=int, default=0,
                         help="leading passes not counted against a seconds budget (default 0)")
     render.add_argument("--fixed-passes", action="store_true",

@@ -30,7 +30,8 @@ def _image_metadata(scene_name: str, args, method: str, integrator, budget, prov
 
     guide = getattr(integrator, "guide", None)
     parameters = {"budget": asdict(budget), "max_depth": args.max_depth, "scale": args.scale, "combine": combine,
-                  "nee": samples_emitters(integrator)}
+                  "nee": samples_emitters(integrator),
+                  "path_fallback": bool(getattr(integrator, "path_fallback", False))}
     return {"method": method, "scene": scene_name, "seed": args.seed, "parameters": parameters,
             "guide": {k: v for k, v in (guide.stats() if guide is not None else {}).items()
                       if not isinstance(v, (dict, list))},
@@ -100,14 +101,24 @@ def command_render(args) -> None:
     variant = set_variant(args.variant, args.threads)
     from guiding.render.integrator import integrator_for
 
-    integrator = integrator_for(method, args.max_depth, args.nee, args.memory_limit)
+    if args.path_fallback and not args.nee:
+        raise GuidingError("--path-fallback hands passes to Mitsuba's path, which samples emitters: add --nee")
+    integrator = integrator_for(method, args.max_depth, args.nee, args.memory_limit, args.path_fallback)
     guide = getattr(integrator, "guide", None)
     if args.save_guide and (guide is None or not guide.records()):
         raise GuidingError(f"--save-guide: method '{method.label}' learns nothing to save")
     with output_dir(args.out) as out:
         stats = _render_to(out, args.scene, args, integrator, method.label, budget, variant)
     print(f"{method.label}{' with nee' if args.nee else ''} on {args.scene}: {stats['spp']} spp in {stats['seconds']:.2f} s "
-          f"(compile {stats['compile_seconds']:.2f} s), hit rate {stats['hit_rate']:.4f} -> {out}")
+          f"(compile {stats['compile_seconds']:.2f} s), hit rate {stats['hit_rate']:.4f}{_fallback_text(stats)} -> {out}")
+
+
+def _fallback_text(stats: dict) -> str:
+    """What the path fallback decided, for the render's last line ('' without one)."""
+    decision = stats.get("path_fallback")
+    if decision is None:
+        return ""
+    return f", path fallback: {decision['reason']}" + (f" (after {decision['spp']} spp)" if decision["spp"] else "")
 
 
 def command_reference(args) -> None:

@@ -58,7 +58,7 @@ def evaluate_run(image: str, stats: str, reference: str, out: str, run: dict | N
                   **{k: metrics[k] for k in CURVE_METRICS}})
     keep = ("scene", "method", "seed", "scale", "resolution", "spp", "seconds", "compile_seconds", "budget",
             "budget_seconds_counted", "passes", "hit_rate", "max_depth", "nee", "spp_in_image", "combine",
-            "training_stopped")
+            "training_stopped", "path_fallback")
     guide = {k: v for k, v in stats_data.get("guide", {}).items() if not isinstance(v, (dict, list))}
     result = {**(run or {}), **metrics, "render_seconds": render_seconds_at(per_pass, stats_data["spp"]),
               "stats": {k: stats_data.get(k) for k in keep}, "guide": guide,

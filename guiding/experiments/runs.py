@@ -6,7 +6,8 @@ A run's method is resolved once, here, into a typed :class:`~guiding.guides.meth
 ``{spatial_resolution: S, directional_resolution: D}``, Table 2's ``{rule}-{sampler}`` grid methods. The render
 gets it back as ``--method NAME --set FIELD=VALUE ...``; the run's name in paths and tables is a label, never read
 back. An experiment with ``nee: true`` renders every method with next-event estimation (``--nee``; Mitsuba's
-``path``, a method too, always has it).
+``path``, a method too, always has it); a method declared with ``path_fallback: true`` then also falls back to
+``path`` where guiding does not pay (``--path-fallback``, :mod:`guiding.render.path_fallback`).
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ class Run:
     timed: bool
     coords: tuple = ()        # (("S", 8), ("D", 16)) or (("rule", "mc"), ("sampler", "hemi_inv")) or (("extra", True),)
     nee: bool = False         # the experiment asks for next-event estimation (--nee)
+    path_fallback: bool = False   # the method is declared with path_fallback (--path-fallback)
 
     @property
     def samples_emitters(self) -> bool:
@@ -79,8 +81,10 @@ class Run:
         """The method as `python -m guiding render` takes it: ``--method NAME``, a ``--set`` per setting, and
         ``--nee`` where the experiment asks for it and the method is guided (Mitsuba's ``path`` always has it)."""
         settings = [["--set", f"{field}={setting_text(value)}"] for field, value in self.spec.settings]
-        nee = ["--nee"] if self.nee and self.spec.mitsuba_integrator is None else []
-        return ["--method", self.spec.name, *itertools.chain.from_iterable(settings), *nee]
+        guided = self.spec.mitsuba_integrator is None
+        nee = ["--nee"] if self.nee and guided else []
+        fallback = ["--path-fallback"] if self.path_fallback and guided else []
+        return ["--method", self.spec.name, *itertools.chain.from_iterable(settings), *nee, *fallback]
 
     def info(self) -> dict:
         """What metrics.json records about the run (with the budget flattened); ``cli_method`` is the method's
@@ -176,6 +180,10 @@ def expand(config: dict) -> tuple[list[Run], dict[tuple[str, float], Reference]]
                               "experiment takes a list")
         entries = _method_entries(config, experiment)
         nee = spec.get("nee", False)
+        fallbacks = {name for name, _, _, _ in entries if config["methods"].get(name, {}).get("path_fallback")}
+        if fallbacks and not nee:
+            raise ConfigError(f"{where}: method '{sorted(fallbacks)[0]}' falls back to Mitsuba's path "
+                              "(path_fallback), which needs next-event estimation: set nee: true")
         if nee:
             entries = [(name, method, label if method.mitsuba_integrator else label + NEE_LABEL_SUFFIX, coords)
                        for name, method, label, coords in entries]
@@ -194,7 +202,7 @@ def expand(config: dict) -> tuple[list[Run], dict[tuple[str, float], Reference]]
             for (name, method, label, coords), point, seed in itertools.product(entries, points,
                                                                                  spec.get("seeds", config["seeds"])):
                 runs.append(Run(experiment, scene, name, method, label, seed, point, scale,
-                                experiment_timed(config, experiment), coords, nee))
+                                experiment_timed(config, experiment), coords, nee, name in fallbacks))
     return runs, references
 
 

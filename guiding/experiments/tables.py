@@ -61,8 +61,8 @@ PAPER_EQUAL_TIME = {
 
 #: The metrics of every render (guiding.metrics.evaluate) beside the paper's MAE, in the order the CSVs show them.
 OTHER_METRICS = [m for m in METRICS if m != "mae"]
-RUN_COLUMNS = ["experiment", "scene", "method", "cli_method", "nee", "label", "seed", "budget", "scale", "resolution",
-               "spp", "seconds", "render_seconds", "compile_seconds", "budget_seconds_counted", "hit_rate", "mae",
+RUN_COLUMNS = ["experiment", "scene", "method", "cli_method", "nee", "fallback", "label", "seed", "budget", "scale",
+               "resolution", "spp", "seconds", "render_seconds", "compile_seconds", "budget_seconds_counted", "hit_rate", "mae",
                *OTHER_METRICS, "nonfinite_pixels", "host", "device", "variant", "threads", "mitsuba", "drjit", "date"]
 
 
@@ -98,6 +98,8 @@ def runs_frame(rows: list[dict]) -> pd.DataFrame:
                   "spp_counted": _counted_spp(stats),
                   "seconds": stats.get("seconds"), "compile_seconds": stats.get("compile_seconds"),
                   "budget_seconds_counted": stats.get("budget_seconds_counted"), "hit_rate": stats.get("hit_rate"),
+                  # What renders the rest of the budget after the path fallback's check ("guide" or "path").
+                  "fallback": (stats.get("path_fallback") or {}).get("chosen"),
                   **{k: prov.get(k) for k in ("host", "device", "variant", "threads", "mitsuba", "drjit", "date")}}
         records.append(record)
     frame = pd.DataFrame.from_records(records)
@@ -349,6 +351,24 @@ def _mean_spread(cell: dict | None, metric: str) -> str:
     return fmt(cell[metric]) + (f" ± {fmt(spread, 2)}" if cell.get("seeds", 1) > 1 else "")
 
 
+def _fallback_choices(spec: dict, runs: pd.DataFrame, header: list[str]) -> list[str]:
+    """For the methods with the path fallback (--path-fallback), per scene, what rendered the rest of the budget
+    in how many seeds; nothing when no run has one."""
+    if "fallback" not in runs or runs["fallback"].isna().all():
+        return []
+    counts = runs.dropna(subset=["fallback"]).groupby(["scene", "method"])["fallback"]
+
+    def choices(scene: str, method: str) -> str:
+        if (scene, method) not in counts.groups:
+            return ""
+        chosen = counts.get_group((scene, method)).value_counts()
+        return ", ".join(f"{strategy} {count}/{chosen.sum()}" for strategy, count in chosen.items())
+
+    rows = [[f"**{scene}**", *[choices(scene, m) for m in spec["methods"]]] for scene in spec["scenes"]]
+    return ["What rendered the rest of the budget after the path fallback's check (seeds), for the methods that "
+            "have one:", markdown_table(header, rows)]
+
+
 def practical(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
     """Each method against Mitsuba's ``path`` at equal time, per scene: the efficiency relative to ``path``
     (:data:`PRACTICAL_EFFICIENCY`), MAE and relMSE (mean ± standard deviation over seeds), counted spp."""
@@ -376,6 +396,7 @@ def practical(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:
         "Counted samples per pixel (mean over seeds) in the counted seconds:",
         markdown_table(header, rows(lambda c: "(not run)" if c is None else
                                     f"{fmt(c['spp_counted'], 6)} spp, {fmt(c['cost_seconds'], 3)} s")),
+        *_fallback_choices(spec, runs, header),
         provenance_note(runs, spec["timed"])]) + "\n"
     columns = ["scene", "method", "cli_method", "nee", "label", "efficiency_vs_path", "mae", "mae_std", "relmse",
                "relmse_std", "seeds", "spp_counted", "cost_seconds", *[m for m in OTHER_METRICS if m != "relmse"],

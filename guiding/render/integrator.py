@@ -50,6 +50,10 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
       ``learn_nee_light`` (bool, true): with ``nee``, the guide learns the full incident radiance its sampled
         directions bring back, light that emitter sampling also finds included; false: only the share of emission
         that next-event estimation leaves to sampled directions (their MIS weight).
+      ``path_fallback`` (bool, false): with ``nee``: where the guide has nothing to guide, every pass is Mitsuba's
+        ``path``; otherwise, after a tenth of the budget, two ``path`` passes are compared with the guide's last two
+        and the rest of the budget goes to the one predicted the lower error (:mod:`guiding.render.path_fallback`;
+        guides with iterations, the SD-tree, only in the first case). ``mi.render`` then returns an unbiased mix.
       ``statistics`` (bool, false): grid methods only: the guide counts guided vertices, proposals and acceptances
         per pass (``guided_samples``, ``acceptance_rate``, … in the pass statistics; off by default, they cost
         atomics on every bounce).
@@ -71,6 +75,9 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         self.nee = props.get("nee", False)
         self.rr_depth = props.get("rr_depth", defaults.RR_DEPTH_NEE if self.nee else defaults.RR_DEPTH)
         self.learn_nee_light = props.get("learn_nee_light", True)
+        self.path_fallback = props.get("path_fallback", False)
+        if self.path_fallback and not self.nee:
+            raise ValueError("path_fallback hands passes to Mitsuba's path, which samples emitters: set nee too")
         if self.max_depth < 1:
             raise ValueError(f"max_depth must be >= 1, got {self.max_depth}")
         if self.pass_spp < 1:
@@ -82,6 +89,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         self.path_guide = guide      # what the path loop asks (see prepare)
         self.freeze = props.get("freeze", True)
         self.frozen_passes = None     # the FrozenPasses of the scene last prepared (None: traced passes)
+        self.fallback_integrator = None   # Mitsuba's path, where path_fallback applies to the scene last prepared
         self.last_result = None
         self.reset_counters()
 
@@ -113,6 +121,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         """Before the first pass on ``scene``: the guide allocates its tables; and where no BSDF of the scene is one
         the guide guides, the passes trace plain BSDF sampling, without the guide's code (masked off at every
         vertex, it would still cost every bounce). The passes on ``scene`` are frozen from here on (``freeze``).
+        With ``path_fallback``, Mitsuba's ``path`` is made ready (:mod:`guiding.render.path_fallback`).
         With ``nee``, a scene without emitters, or with one that emitter sampling cannot sample
         (:func:`~guiding.render.emitter_sampling.unsampleable_emitters`), is refused (GuidingError, one line)."""
         if self.nee and not scene.emitters():
@@ -123,6 +132,11 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         self.guide.prepare(scene)
         self.path_guide = self.guide if self.guide.guides_any(scene) else _BSDF_SAMPLING
         self.frozen_passes = FrozenPasses(self, scene, _PassRenderer) if self.freeze and recordable(scene) else None
+        # BSDF sampling with NEE (a guide that learns nothing) is path's estimator already: nothing to fall back to.
+        learns = self.guide.records()
+        self.fallback_integrator = (mi.load_dict({"type": "path", "max_depth": self.max_depth,
+                                                  "rr_depth": self.rr_depth})
+                                    if self.path_fallback and learns else None)
 
     @property
     def guides_scene(self) -> bool:
@@ -216,6 +230,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     def to_string(self) -> str:
         return (f"GuidedPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"pass_spp={self.pass_spp}, growing_passes={self.growing_passes}, nee={self.nee}, "
+                f"path_fallback={self.path_fallback}, "
                 f"guide={self.guide.name}]")
 
 
@@ -251,13 +266,14 @@ def register() -> None:
 
 
 def integrator_for(method, max_depth: int = defaults.MAX_DEPTH, nee: bool = False,
-                   memory_limit: int | str | None = None) -> mi.SamplingIntegrator:
+                   memory_limit: int | str | None = None, path_fallback: bool = False) -> mi.SamplingIntegrator:
     """The integrator that renders ``method`` (a :class:`~guiding.guides.methods.Method`): the Mitsuba integrator it
-    names (``path``, which always does next-event estimation), else ``guided_path`` with a fresh guide of the method
-    and ``nee`` (refused, GuidingError, if the guide's tables would exceed ``memory_limit``)."""
+    names (``path``, which always does next-event estimation), else ``guided_path`` with a fresh guide of the method,
+    ``nee`` and ``path_fallback`` (refused, GuidingError, if the guide's tables would exceed ``memory_limit``)."""
     if method.mitsuba_integrator is not None:
         return mi.load_dict({"type": method.mitsuba_integrator, "max_depth": max_depth})
     props = mi.Properties()
     props["max_depth"] = max_depth
     props["nee"] = nee
+    props["path_fallback"] = path_fallback
     return GuidedPathIntegrator(props, guide=method.build(memory_limit))

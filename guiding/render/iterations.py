@@ -90,11 +90,13 @@ class IterationImages:
         self.kept: deque = deque(maxlen=COMBINED_ITERATIONS if combine == COMBINE_INVERSE_VARIANCE else 1)
         self.first = self.second = None
         self.spp = self.passes = 0
+        self.summed_spp = 0           # spp in the running sums (those after the split, once split)
+        self.before: tuple[np.ndarray, float] | None = None   # (image, share) of the running iteration's split
 
     def add_pass(self, image, spp: int) -> None:
         """Add a pass image (a device tensor) of ``spp`` samples per pixel (inside the pass's timed region)."""
         x = mi.TensorXd(image)
-        if self.passes == 0:
+        if self.summed_spp == 0:
             # A new iteration starts from evaluated zeros (not literals), so that every pass runs the same
             # accumulation kernel: a different first pass would be compiled in the second pass of a render.
             self.first, self.second = dr.zeros(mi.TensorXd, x.shape), dr.zeros(mi.TensorXd, x.shape)
@@ -103,13 +105,26 @@ class IterationImages:
         self.first, self.second = self.first + weighted, self.second + weighted * x
         dr.eval(self.first, self.second)
         self.spp += spp
+        self.summed_spp += spp
         self.passes += 1
 
+    def split(self, share: float) -> None:
+        """From here on the running iteration's image is ``share`` × its image so far + (1 − ``share``) × the mean
+        of the passes after (:mod:`guiding.render.path_fallback`: unbiased for a share not made of the images)."""
+        self.before = (self._current_image(), share)
+        self.summed_spp = 0
+
     def _current_image(self) -> np.ndarray:
-        return self.first.numpy()[..., :3].astype(np.float64) / self.spp
+        after = self.first.numpy()[..., :3].astype(np.float64) / self.summed_spp if self.summed_spp else None
+        if self.before is None:
+            return after
+        before, share = self.before
+        return before if after is None else share * before + (1.0 - share) * after
 
     def variance(self) -> float | None:
-        """The estimated variance of the current iteration's image (:func:`iteration_variance`)."""
+        """The estimated variance of the current iteration's image (:func:`iteration_variance`); None once split."""
+        if self.before is not None:
+            return None
         first = self.first.numpy()[..., :3].astype(np.float64)
         second = self.second.numpy()[..., :3].astype(np.float64)
         return iteration_variance(first, second, self.spp, self.passes)
@@ -118,7 +133,8 @@ class IterationImages:
         """End the current iteration: keep its image, fill in its variance; the next pass starts a new one."""
         record.variance = self.variance()
         self.kept.append((record, self._current_image()))
-        self.spp = self.passes = 0
+        self.spp = self.passes = self.summed_spp = 0
+        self.before = None
 
     def image(self) -> tuple[np.ndarray, int, list[tuple[IterationStats | None, float]]]:
         """What the render shows now: (image (H, W, 3) float64, spp it is made of, [(iteration, weight)]), with

@@ -71,6 +71,7 @@ from guiding.render import defaults
 from guiding.render.driver import PassDriver, pass_seed
 from guiding.render.iterations import IterationImages, IterationStats, extrapolated_variance
 from guiding.render.pass_schedule import MIN_ITERATION_PASSES, PassSchedule
+from guiding.render.path_fallback import COMPARED_PASSES, PATH, PathFallback
 from guiding.render.progress import Progress
 
 #: The automatic budget trusts an iteration's variance only if it started after this many spp (Tom94's
@@ -135,6 +136,7 @@ class RenderResult:
     combine: str = COMBINE_LAST
     iterations: list[IterationStats] = field(default_factory=list)
     training_stopped: dict | None = None   # {"spp", "seconds", "reason", ...} once the guide stopped learning
+    path_fallback: dict | None = None      # the path fallback's decision (FallbackDecision.summary), if it made one
 
     @property
     def spp(self) -> int:
@@ -157,6 +159,7 @@ class RenderResult:
                 "compile_seconds": self.compile_seconds, "budget_seconds_counted": self.counted_seconds(),
                 "passes": len(self.passes), "hit_rate": self.hit_rate, "budget": asdict(self.budget),
                 "combine": self.combine, "training_stopped": self.training_stopped,
+                "path_fallback": self.path_fallback,
                 "iterations": [{**asdict(it), "spp": it.spp} for it in self.iterations]}
 
     def counted_seconds(self) -> float:
@@ -165,7 +168,11 @@ class RenderResult:
 
 
 def _spp_weighted_hit_rate(passes: list[PassStats]) -> float:
-    return float(np.average([p.hit_rate for p in passes], weights=[p.spp for p in passes]))
+    """Over the passes that count their paths (a Mitsuba integrator's, such as the path fallback's, do not)."""
+    counted = [p for p in passes if math.isfinite(p.hit_rate)]
+    if not counted:
+        return math.nan
+    return float(np.average([p.hit_rate for p in counted], weights=[p.spp for p in counted]))
 
 
 def is_snapshot_spp(spp_total: int, pass_spp: int) -> bool:
@@ -259,6 +266,9 @@ class _ProgressiveRender:
         self.driver = PassDriver(scene, integrator, sensor)
         self.driver.prepare(budget.spp)
         self.guide = self.driver.guide
+        # Set by the integrator's prepare (in driver.prepare) where its path_fallback applies.
+        path = getattr(integrator, "fallback_integrator", None)
+        self.fallback = None if path is None else PathFallback.for_render(scene, path, sensor, self.guide)
         film = (scene.sensors()[sensor] if isinstance(sensor, int) else sensor).film()
         self.schedule = PassSchedule(budget.pass_spp, int(np.prod(film.crop_size())), budget.growing_passes,
                                      budget.exclude_passes)
@@ -274,7 +284,10 @@ class _ProgressiveRender:
     # ------------------------------------------------------------------------------ passes
     def next_pass_spp(self) -> int | None:
         """The spp of the next pass, or None once the budget is spent."""
-        budget, limits = self.budget, (*_guide_limits(self.guide, self.spp_total), self._snapshot_limit())
+        fallback = self.fallback
+        limits = (*_guide_limits(None if self._path_pass() else self.guide, self.spp_total), self._snapshot_limit(),
+                  fallback.compare_spp() if fallback is not None else None)
+        budget = self.budget
         if budget.spp is not None:
             if self.spp_total >= budget.spp:
                 return None
@@ -290,10 +303,10 @@ class _ProgressiveRender:
 
     def render_pass(self, seed: int, spp: int) -> tuple[PassStats, mi.TensorXf]:
         """Render and update (the timed part): the pass's statistics and its own image."""
-        index = len(self.passes)
-        self.recorded = self.guide is not None and self.guide.records()
-        outcome = self.driver.run(pass_seed(seed, index), spp,
-                                  accumulate=lambda image: self.images.add_pass(image, spp))
+        index, path_pass = len(self.passes), self._path_pass()
+        self.recorded = self.guide is not None and not path_pass and self.guide.records()
+        driver = self.fallback.driver if path_pass else self.driver
+        outcome = driver.run(pass_seed(seed, index), spp, accumulate=lambda image: self.images.add_pass(image, spp))
         self.spp_total += spp
         stats = PassStats(index, spp, self.spp_total, outcome.seconds, outcome.update_seconds,
                           outcome.kernels.compile_seconds, outcome.kernels.launched, outcome.kernels.compiled,
@@ -302,11 +315,20 @@ class _ProgressiveRender:
         self.passes.append(stats)
         if index >= self.budget.exclude_passes:
             self.counted += stats.counted_seconds
+        if self.fallback is not None and self.fallback.watches:
+            self.fallback.observe(outcome.image.numpy()[..., :3].astype(np.float64), spp, stats.counted_seconds)
         return stats, outcome.image
 
+    def _path_pass(self) -> bool:
+        """Whether the next pass is Mitsuba's ``path`` (the path fallback's)."""
+        return self.fallback is not None and self.fallback.renders_path
+
     def after_pass(self, stats: PassStats) -> None:
-        """Schedule and bookkeeping (not timed): an iteration that ended is closed, or training stops there."""
+        """Schedule and bookkeeping (not timed): an iteration that ended is closed, or training stops there; the
+        path fallback's check."""
         guide = self.guide
+        if self.fallback is not None and self.fallback.watches:
+            self._check_fallback()
         if stats.iteration_done:
             ended = self._current_iteration()
             stop = self._seconds_stop(ended)
@@ -325,6 +347,28 @@ class _ProgressiveRender:
             self.training_stopped = {"spp": self.spp_total, "seconds": self.counted,
                                      "reason": "the guide's schedule: its final iteration records nothing"}
 
+    def _check_fallback(self) -> None:
+        """The path fallback's check (:mod:`guiding.render.path_fallback`): its ``path`` passes start once it is
+        due; after them, the decision, and the image so far becomes the part before it."""
+        fallback, budget = self.fallback, self.budget
+        if fallback.comparing and len(fallback.path_passes) == COMPARED_PASSES:
+            spp_left = budget.spp - self.spp_total if budget.spp is not None else None
+            seconds_left = budget.seconds - self.counted if budget.seconds is not None else None
+            share = fallback.share_before(self.spp_total, budget.spp, seconds_left)
+            decision = fallback.decide(self.images.image()[0], self.spp_total, self.counted, spp_left, seconds_left,
+                                       share)
+            self.images.split(share)
+            if decision.chosen == PATH:
+                self.training_stopped = {"spp": self.spp_total, "seconds": self.counted,
+                                         "reason": f"path fallback: {decision.reason}"}
+        elif fallback.start_due(self._budget_spent()):
+            fallback.comparing = True
+
+    def _budget_spent(self) -> float:
+        """The share of the budget spent: of its spp, or of its seconds counted."""
+        budget = self.budget
+        return self.spp_total / budget.spp if budget.spp is not None else self.counted / budget.seconds
+
     def finish(self) -> None:
         """After the last pass: the final iteration (the rest of the budget after the last boundary), the last
         snapshot."""
@@ -337,8 +381,10 @@ class _ProgressiveRender:
         image, spp_in_image, weights = self.images.image()
         for record, weight in weights:
             record.weight = weight
+        fallback = self.fallback.decision if self.fallback is not None else None
         return RenderResult(image.astype(np.float32), self.passes, self.budget, spp_in_image, self.combine,
-                            self.iterations, self.training_stopped)
+                            self.iterations, self.training_stopped,
+                            fallback.summary() if fallback is not None else None)
 
     # -------------------------------------------------------------------------- iterations
     def _current_iteration(self) -> IterationStats:
