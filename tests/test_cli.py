@@ -154,10 +154,12 @@ def test_nee_on_a_scene_without_emitters_is_one_line_and_writes_nothing(tmp_path
 def test_demo_entries_are_parsed_once_into_methods_and_nee():
     from guiding.cli.parser import DemoEntry, parse_args
 
-    args = parse_args(["demo", "--methods", "path,ours+nee,ours-S4"])
-    assert args.methods == (DemoEntry("path"), DemoEntry("ours", True), DemoEntry("ours-S4"))
-    assert [entry.name for entry in args.methods] == ["path", "ours+nee", "ours-S4"]
+    args = parse_args(["demo", "--methods", "path,ours+nee,ours-S4,ours+nee+fallback"])
+    assert args.methods == (DemoEntry("path"), DemoEntry("ours", True), DemoEntry("ours-S4"),
+                            DemoEntry("ours", True, True))
+    assert [entry.name for entry in args.methods] == ["path", "ours+nee", "ours-S4", "ours+nee+fallback"]
     assert args.methods[1].render_args() == ["--method", "ours", "--nee"]
+    assert args.methods[3].render_args() == ["--method", "ours", "--nee", "--path-fallback"]
     default = parse_args(["demo"])
     assert (default.seconds, default.spp) == (5.0, None)
     assert [e.name for e in default.methods][:3] == ["path", "brdf", "ours"] and any(e.nee for e in default.methods)
@@ -167,6 +169,7 @@ def test_demo_entries_are_parsed_once_into_methods_and_nee():
     (["--methods", "ours+nee,ours+nee"], "'ours+nee' is given twice"),
     (["--methods", ","], "no method given"),
     (["--methods", "path,ours+nees"], "unknown method 'ours+nees'"),
+    (["--methods", "path,ours+fallback"], "the path fallback needs next-event estimation, write ours+nee+fallback"),
     (["--seconds", "2", "--spp", "8"], "not allowed with argument"),
 ])
 def test_bad_demo_input_writes_nothing(tmp_path, capsys, args, message):
@@ -180,19 +183,20 @@ def test_demo_compares_methods_with_and_without_nee_at_equal_time(tmp_path):
     relative to path (MAE²·t of path over the method's; 1 for path)."""
     out = tmp_path / "demo"
     assert main(["demo", "--scene", "cornell", "--scale", "0.05", "--seconds", "0.3", "--reference-spp", "64",
-                 "--methods", "path,brdf,brdf+nee", "--out", str(out)]) == 0
+                 "--methods", "path,brdf,brdf+nee,ours+nee+fallback", "--out", str(out)]) == 0
     lines = (out / "summary.md").read_text().splitlines()
     assert lines[0] == "# cornell at scale 0.05, 0.3 s each"
-    header, _, *rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines[2:7]]
-    assert header == ["method", "nee", "spp", "seconds", "mae", "relmse", "efficiency_vs_path"]
-    assert [row[:2] for row in rows] == [["path", "True"], ["brdf", "False"], ["brdf", "True"]]
+    header, _, *rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines[2:8]]
+    assert header == ["method", "nee", "fallback", "spp", "seconds", "mae", "relmse", "efficiency_vs_path"]
+    assert [row[:3] for row in rows[:3]] == [["path", "True", ""], ["brdf", "False", ""], ["brdf", "True", ""]]
+    assert rows[3][:2] == ["ours", "True"] and rows[3][2] in ("guide", "path")
     mae, seconds, efficiency = ([float(row[header.index(k)]) for row in rows] for k in ("mae", "seconds",
                                                                                        "efficiency_vs_path"))
     assert min(seconds) >= 0.3 and efficiency[0] == 1
     # The table rounds to four digits: its MAE and seconds give the efficiency to a few parts in a thousand.
     assert efficiency[2] == pytest.approx(mae[0] ** 2 * seconds[0] / (mae[2] ** 2 * seconds[2]), rel=6e-3)
-    assert {p.name for p in out.iterdir()} == {"path", "brdf", "brdf+nee", "reference-cornell-x0.05-64spp",
-                                               "summary.md"}
+    assert {p.name for p in out.iterdir()} == {"path", "brdf", "brdf+nee", "ours+nee+fallback",
+                                               "reference-cornell-x0.05-64spp", "summary.md"}
 
 
 def test_unwritable_output(tmp_path, capsys):

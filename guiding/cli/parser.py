@@ -38,25 +38,39 @@ def _positive_float(text: str) -> float:
     return value
 
 
-#: What a demo entry's name ends with to render with next-event estimation (``ours+nee``).
+#: What a demo entry's name ends with to render with next-event estimation (``ours+nee``), and then with the path
+#: fallback too (``ours-plus+nee+fallback``).
 NEE_SUFFIX = "+nee"
+FALLBACK_SUFFIX = "+fallback"
 
 
 @dataclass(frozen=True)
 class DemoEntry:
-    """One render of the demo: a method name (resolved when its render's arguments are parsed) and whether it
-    renders with next-event estimation, written ``NAME+nee`` (Mitsuba's ``path`` always has it)."""
+    """One render of the demo: a method name (resolved when its render's arguments are parsed), whether it
+    renders with next-event estimation, written ``NAME+nee`` (Mitsuba's ``path`` always has it), and whether with
+    the path fallback too, ``NAME+nee+fallback``."""
 
     method: str
     nee: bool = False
+    path_fallback: bool = False
 
     @property
     def name(self) -> str:
         """As written on the command line, and the name of the render's folder."""
-        return self.method + (NEE_SUFFIX if self.nee else "")
+        return self.method + (NEE_SUFFIX if self.nee else "") + (FALLBACK_SUFFIX if self.path_fallback else "")
 
     def render_args(self) -> list[str]:
-        return ["--method", self.method, *(["--nee"] if self.nee else [])]
+        return ["--method", self.method, *(["--nee"] if self.nee else []),
+                *(["--path-fallback"] if self.path_fallback else [])]
+
+    @classmethod
+    def parse(cls, name: str) -> DemoEntry:
+        fallback = name.endswith(FALLBACK_SUFFIX)
+        name = name.removesuffix(FALLBACK_SUFFIX)
+        if fallback and not name.endswith(NEE_SUFFIX):
+            raise argparse.ArgumentTypeError(f"'{name}{FALLBACK_SUFFIX}': the path fallback needs next-event "
+                                             f"estimation, write {name}{NEE_SUFFIX}{FALLBACK_SUFFIX}")
+        return cls(name.removesuffix(NEE_SUFFIX), name.endswith(NEE_SUFFIX), fallback)
 
 
 def _demo_entries(text: str) -> tuple[DemoEntry, ...]:
@@ -67,7 +81,7 @@ def _demo_entries(text: str) -> tuple[DemoEntry, ...]:
     twice = sorted({name for name in names if names.count(name) > 1})
     if twice:
         raise argparse.ArgumentTypeError(f"'{twice[0]}' is given twice")
-    return tuple(DemoEntry(name.removesuffix(NEE_SUFFIX), name.endswith(NEE_SUFFIX)) for name in names)
+    return tuple(DemoEntry.parse(name) for name in names)
 
 
 def _memory_size(text: str) -> int:
@@ -186,7 +200,7 @@ def _add_bench(commands) -> None:
 
 #: The demo's methods: the practical answer (Mitsuba's path against the guided methods with next-event
 #: estimation) beside the paper's comparison (BSDF sampling against ours, both without).
-DEMO_METHODS = "path,brdf,ours,ours+nee,ours-plus+nee,sdtree+nee"
+DEMO_METHODS = "path,brdf,ours,ours+nee,ours-plus+nee,ours-plus+nee+fallback,sdtree+nee"
 
 
 def _add_demo_and_validate(commands) -> None:
@@ -195,7 +209,8 @@ def _add_demo_and_validate(commands) -> None:
     demo.add_argument("--scene", default="door-ajar")
     demo.add_argument("--scale", type=_positive_float, default=0.5)
     demo.add_argument("--methods", type=_demo_entries, default=DEMO_METHODS,
-                      help="comma-separated method names, each with +nee to render it with next-event estimation "
+                      help="comma-separated method names, each with +nee to render it with next-event estimation, "
+                      "+nee+fallback with the path fallback too (Mitsuba's path where guiding does not pay) "
                       f"(default {DEMO_METHODS}; `path` is Mitsuba's own path tracer, which always has it)")
     budget = demo.add_mutually_exclusive_group()
     budget.add_argument("--seconds", type=_positive_float, default=5.0,

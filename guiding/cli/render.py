@@ -183,7 +183,8 @@ def _demo_row(render, reference: Path) -> dict:
     target = Path(render.out)
     stats = json.loads((target / "stats.json").read_text())
     errors = evaluate(read_exr(target / "image.exr"), read_exr(reference / "image.exr"))
-    return {"method": render.method.label, "nee": stats["nee"], "spp": stats["spp"],
+    fallback = (stats.get("path_fallback") or {}).get("chosen", "")
+    return {"method": render.method.label, "nee": stats["nee"], "fallback": fallback, "spp": stats["spp"],
             "seconds": stats["budget_seconds_counted"], "mae": errors["mae"], "relmse": errors["relmse"]}
 
 
@@ -221,7 +222,8 @@ def command_demo(args) -> None:
     each = f"{args.spp} spp" if args.spp else f"{args.seconds:g} s"
     (out / "summary.md").write_text(
         f"# {args.scene} at scale {args.scale}, {each} each\n\n{table}\n\nseconds: rendering counted against the "
-        "budget (compilation excluded); nee: next-event estimation (Mitsuba's `path` always has it); "
+        "budget (compilation excluded); nee: next-event estimation (Mitsuba's `path` always has it); fallback: what "
+        "rendered the rest of the budget after the path fallback's check (`+fallback`); "
         "efficiency_vs_path: path's MAE²·seconds over the method's (above 1: path's error in less time).\n")
     print(table)
 
