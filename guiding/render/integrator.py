@@ -6,7 +6,8 @@ tells it what each vertex saw. Following Kim & Kim (2021), emitters are found by
 directions (no next-event estimation), paths stop at ``max_depth``, and Russian roulette starts at ``rr_depth`` with
 the continuation probability ``q = max(max_rgb(β), rr_min)``. With ``nee``, every vertex the path continues from
 with a smooth BSDF also samples an emitter, combined with the sampled directions by MIS as in Mitsuba's ``path``, and
-Russian roulette starts at that integrator's depth, 5.
+Russian roulette is that integrator's: from depth 5, ``q = min(max_rgb(β)·η², 0.95)`` (η the relative index of
+refraction along the path).
 
 Usable from XML (``<integrator type="guided_path"><string name="method" value="ours"/></integrator>``), from
 ``mi.load_dict({'type': 'guided_path', ...})``, or built in Python with an explicit guide object. ``mi.render``
@@ -35,7 +36,8 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
       ``max_depth`` (int, 16): longest path, in vertices after the camera; 1 shows only directly visible
         emitters (Mitsuba's convention, so images compare with its ``path`` integrator).
       ``rr_depth`` (int, 8; 5 with ``nee``, as Mitsuba's ``path``): depth from which Russian roulette may end a path.
-      ``rr_min`` (float, 0.05): lower bound of the continuation probability ``q = max(max_rgb(β), rr_min)``.
+      ``rr_min`` (float, 0.05): lower bound of the continuation probability ``q = max(max_rgb(β), rr_min)`` (without
+        ``nee``; with it, ``q = min(max_rgb(β)·η², 0.95)``, as Mitsuba's ``path``).
       ``method`` (str, "brdf"): a method name of :mod:`guiding.guides.methods`; ignored when a guide is passed.
       ``pass_spp`` (int, 8): samples per pixel of the first passes of ``mi.render``; the guide updates between
         passes, and later passes grow to ``pass_spp·2^k`` up to its next update (:mod:`guiding.render.pass_schedule`).
@@ -166,6 +168,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         started = mi.Bool(active)     # The lanes that trace a path (for the hit rate)
         path_state = guide.new_paths(dr.width(ray.o), self.max_depth)
         previous = PreviousVertex.camera(dr.width(ray.o)) if self.nee else NoPathState()   # empty loop state
+        η = mi.Float(1)               # Relative index of refraction along the path (Russian roulette with nee)
 
         while dr.hint(active, max_iterations=self.max_depth, label="Guided path tracer"):
             si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0))
@@ -200,7 +203,11 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
 
             # -------------------------- Russian roulette --------------------------
             β_next = β * weight
-            q = dr.minimum(dr.maximum(dr.max(β_next), self.rr_min), 1)
+            if dr.hint(self.nee, mode="scalar"):
+                η *= bs.eta
+                q = dr.minimum(dr.max(β_next) * dr.square(η), defaults.RR_MAX_NEE)    # as Mitsuba's path
+            else:
+                q = dr.minimum(dr.maximum(dr.max(β_next), self.rr_min), 1)
             roulette = continues & (depth >= self.rr_depth)
             survives = ~roulette | (sampler.next_1d(roulette) < q)
             weight = dr.select(survives, dr.select(roulette, weight / q, weight), 0)
