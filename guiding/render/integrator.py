@@ -168,7 +168,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         started = mi.Bool(active)     # The lanes that trace a path (for the hit rate)
         path_state = guide.new_paths(dr.width(ray.o), self.max_depth)
         previous = PreviousVertex.camera(dr.width(ray.o)) if self.nee else NoPathState()   # empty loop state
-        η = mi.Float(1)               # Relative index of refraction along the path (Russian roulette with nee)
+        η = mi.Float(1) if self.nee else NoPathState()   # Relative index of refraction (Russian roulette with nee)
 
         while dr.hint(active, max_iterations=self.max_depth, label="Guided path tracer"):
             si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0))

@@ -67,7 +67,7 @@ def predicted_mae(mean: np.ndarray, first: np.ndarray, first_spp: int, second: n
 class PassImage:
     """One pass of a strategy, as the check reads it."""
 
-    image: np.ndarray          # (H, W, 3) float64
+    image: object              # the pass's image as rendered (a device tensor; read on the host only to decide)
     spp: int
     counted_seconds: float     # render and update, compilation excluded
 
@@ -88,6 +88,11 @@ class FallbackDecision:
 
     def summary(self) -> dict:
         return asdict(self)
+
+
+def _rgb(image) -> np.ndarray:
+    """A pass image on the host, (H, W, 3) float64."""
+    return np.asarray(image, dtype=np.float64)[..., :3]
 
 
 def _seconds_per_spp(passes: list[PassImage]) -> float:
@@ -133,7 +138,7 @@ class PathFallback:
         """The spp of the next ``path`` pass while comparing (that of the last guided pass), else None."""
         return self.guided[-1].spp if self.comparing else None
 
-    def observe(self, image: np.ndarray, spp: int, counted_seconds: float) -> None:
+    def observe(self, image, spp: int, counted_seconds: float) -> None:
         """A pass rendered while the check watches, by the strategy :attr:`renders_path` said."""
         (self.path_passes if self.comparing else self.guided).append(PassImage(image, spp, counted_seconds))
 
@@ -160,7 +165,8 @@ class PathFallback:
         errors = {}
         for strategy, (first, second) in ((GUIDE, self.guided), (PATH, self.path_passes)):
             rest = spp_left if spp_left is not None else max(seconds_left, 0.0) / costs[strategy]
-            errors[strategy] = predicted_mae(mean, first.image, first.spp, second.image, second.spp, max(rest, 1.0))
+            errors[strategy] = predicted_mae(mean, _rgb(first.image), first.spp, _rgb(second.image), second.spp,
+                                             max(rest, 1.0))
         chosen = PATH if errors[PATH] < errors[GUIDE] else GUIDE
         reason = (f"{'Mitsuba path' if chosen == PATH else 'the guide'} is predicted the lower error after the rest "
                   "of the budget")

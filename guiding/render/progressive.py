@@ -316,7 +316,7 @@ class _ProgressiveRender:
         if index >= self.budget.exclude_passes:
             self.counted += stats.counted_seconds
         if self.fallback is not None and self.fallback.watches:
-            self.fallback.observe(outcome.image.numpy()[..., :3].astype(np.float64), spp, stats.counted_seconds)
+            self.fallback.observe(outcome.image, spp, stats.counted_seconds)
         return stats, outcome.image
 
     def _path_pass(self) -> bool:
