@@ -20,6 +20,7 @@ from guiding.render.emitter_sampling import PreviousVertex, hit_weight, mis_weig
 from guiding.render import defaults
 from guiding.render.driver import PassDriver, pass_seed
 from guiding.render.integrator import GuidedPathIntegrator
+from guiding.render.progressive import Budget, render
 from guiding.scenes import load_scene
 
 FILM = {"type": "hdrfilm", "width": 48, "height": 48, "rfilter": {"type": "box"}}
@@ -316,9 +317,24 @@ def _relative_variance(scene: mi.Scene, integrator, passes: int = 24, spp: int =
 
 
 def test_brdf_with_nee_is_as_noisy_as_path_behind_glass():
-    """Russian roulette with NEE is path's (``q = min(max_rgb(β)·η², 0.95)``): the paper's ``max(max_rgb(β), 0.05)``
-    ended the paths inside glass that path keeps, and had 1.35× path's relative variance on glossy-box."""
+    """Russian roulette with NEE weighs β by η², as path's (``q = max(max_rgb(β)·η², 0.05)``): the paper's
+    ``max(max_rgb(β), 0.05)`` ended the paths inside glass that path keeps, and had 1.35× path's relative variance on
+    glossy-box."""
     scene = load_scene("glossy-box", scale=0.125)
     ours = _relative_variance(scene, _nee_integrator("brdf"))
     path = _relative_variance(scene, mi.load_dict({"type": "path", "max_depth": 16}))
     assert ours / path < 1.15, f"relative variance {ours} against path's {path}"
+
+
+def test_with_nothing_to_guide_the_passes_are_mitsubas_path():
+    """With NEE, a guide that learns but has nothing to guide (mirror-box: delta lobes only) hands its passes to
+    Mitsuba's ``path``, the same estimator at its own cost: the image is path's, pass for pass. ``brdf``, the loop's
+    reference, keeps the loop."""
+    scene = load_scene("mirror-box", scale=0.0625)
+    budget = Budget(spp=32, growing_passes=False)
+    ours = render(scene, _nee_integrator("ours-plus"), budget, seed=7, progress=False)
+    path = render(scene, mi.load_dict({"type": "path", "max_depth": 16}), budget, seed=7, progress=False)
+    assert np.array_equal(ours.image, path.image) and ours.image.max() > 0
+    assert all(np.isnan(p.hit_rate) for p in ours.passes)    # path counts no paths
+    brdf = render(scene, _nee_integrator("brdf"), budget, seed=7, progress=False)
+    assert not np.array_equal(brdf.image, path.image) and all(p.hit_rate > 0 for p in brdf.passes)

@@ -126,6 +126,8 @@ class TraceOnlyIntegrator(mi.SamplingIntegrator):
     as the path loop traces them (all ray flags), and nothing else: no BSDF, no emission, no roulette. Counts its
     paths and rays as ``guided_path`` does, so that the benchmark reports its rays per second."""
 
+    counts_paths = True   # read by the pass driver
+
     def __init__(self, max_depth: int):
         super().__init__(mi.Properties())
         self.max_depth = max_depth
@@ -216,7 +218,8 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
             if method not in stages and method not in ("path", TRACE_ONLY):
                 continue      # a breakdown variant: in the breakdown table only
             counted = timed.get(f"{method}[+statistics]", records)
-            mrays = sum(r.rays for r in records) / sum(r.kernel for r in records) / 1e6 if method != "path" else None
+            counts = sum(r.paths for r in records) > 0      # Mitsuba's path (its own or a guide's) counts nothing
+            mrays = sum(r.rays for r in records) / sum(r.kernel for r in records) / 1e6 if counts else None
             guide = getattr(integrators[method], "guide", None)
             memory = guide.stats().get("memory_bytes", 0) if guide is not None else 0
             total = sum(r.wall + r.update for r in records)
@@ -235,8 +238,7 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
                 "update_share": sum(r.update for r in records) / total,
                 "refine_share": sum(r.refine for r in records) / total,
                 "memory_MiB": memory / 2**20,
-                "hit_rate": sum(r.hits for r in records) / max(sum(r.paths for r in records), 1)
-                if method != "path" else None,
+                "hit_rate": sum(r.hits for r in records) / sum(r.paths for r in records) if counts else None,
                 "Mrays_per_s": mrays,
                 "share_of_trace_limit": mrays * 1e6 / trace_rays_per_s if mrays is not None else None,
                 "guided_per_ray": _guided_per_ray(counted, nothing_to_guide),

@@ -12,7 +12,3 @@ RR_DEPTH = 8
 RR_DEPTH_NEE = 5
 #: Lower bound of Russian roulette's continuation probability ``q = max(max_rgb(β), RR_MIN)`` (the paper's protocol).
 RR_MIN = 0.05
-#: With next-event estimation, Mitsuba's ``path``'s continuation probability ``q = min(max_rgb(β)·η², RR_MAX_NEE)``
-#: (η the relative index of refraction along the path): inside glass, where each refraction scales β by 1/η², ``q``
-#: from β alone would end paths that ``path`` keeps (and double the relative variance behind glass).
-RR_MAX_NEE = 0.95

@@ -43,7 +43,8 @@ class KernelCosts:
 
 @dataclass
 class PassOutcome:
-    """One pass: its image, its times and what the integrator counted (zero for a Mitsuba integrator)."""
+    """One pass: its image, its times and what the integrator counted (zero for one whose ``counts_paths`` is not
+    true, such as any Mitsuba integrator)."""
 
     image: mi.TensorXf
     seconds: float             # launch to synchronisation
@@ -107,7 +108,7 @@ class PassDriver:
 
         ``accumulate(image)`` runs inside the timed region, before synchronisation (the progressive renderer adds
         the pass to its running sums there, so that its kernel is timed with the pass)."""
-        integrator, counts = self.integrator, hasattr(self.integrator, "reset_counters")
+        integrator, counts = self.integrator, getattr(self.integrator, "counts_paths", False)
         with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
             dr.kernel_history()   # discard what ran before this pass
             if counts:

@@ -5,9 +5,11 @@ One Dr.Jit path loop serves every method: it asks a :class:`~guiding.guides.base
 tells it what each vertex saw. Following Kim & Kim (2021), emitters are found by default only by the sampled
 directions (no next-event estimation), paths stop at ``max_depth``, and Russian roulette starts at ``rr_depth`` with
 the continuation probability ``q = max(max_rgb(β), rr_min)``. With ``nee``, every vertex the path continues from
-with a smooth BSDF also samples an emitter, combined with the sampled directions by MIS as in Mitsuba's ``path``, and
-Russian roulette is that integrator's: from depth 5, ``q = min(max_rgb(β)·η², 0.95)`` (η the relative index of
-refraction along the path).
+with a smooth BSDF also samples an emitter, combined with the sampled directions by MIS as in Mitsuba's ``path``;
+Russian roulette then starts at depth 5, as there, and weighs β by η² (η the relative index of refraction along the
+path), as there, but keeps the paper's floor ``rr_min`` (where ``path`` caps ``q`` at 0.95 instead). Where a guide
+that learns has nothing to guide in a scene, BSDF sampling with next-event estimation is ``path``'s estimator, so
+Mitsuba's ``path`` renders those passes, at its own cost.
 
 Usable from XML (``<integrator type="guided_path"><string name="method" value="ours"/></integrator>``), from
 ``mi.load_dict({'type': 'guided_path', ...})``, or built in Python with an explicit guide object. ``mi.render``
@@ -36,8 +38,8 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
       ``max_depth`` (int, 16): longest path, in vertices after the camera; 1 shows only directly visible
         emitters (Mitsuba's convention, so images compare with its ``path`` integrator).
       ``rr_depth`` (int, 8; 5 with ``nee``, as Mitsuba's ``path``): depth from which Russian roulette may end a path.
-      ``rr_min`` (float, 0.05): lower bound of the continuation probability ``q = max(max_rgb(β), rr_min)`` (without
-        ``nee``; with it, ``q = min(max_rgb(β)·η², 0.95)``, as Mitsuba's ``path``).
+      ``rr_min`` (float, 0.05): lower bound of the continuation probability ``q = max(max_rgb(β), rr_min)`` (with
+        ``nee``, ``q = max(max_rgb(β)·η², rr_min)``).
       ``method`` (str, "brdf"): a method name of :mod:`guiding.guides.methods`; ignored when a guide is passed.
       ``pass_spp`` (int, 8): samples per pixel of the first passes of ``mi.render``; the guide updates between
         passes, and later passes grow to ``pass_spp·2^k`` up to its next update (:mod:`guiding.render.pass_schedule`).
@@ -48,21 +50,22 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
       ``nee`` (bool, false): next-event estimation: at every vertex the path continues from (below ``max_depth``) with
         a smooth BSDF component, one emitter sample, weighted against the guide's own density by the power heuristic
         (as Mitsuba's ``path``; :mod:`guiding.render.emitter_sampling`); Russian roulette then starts at depth 5, as
-        there. False is the paper's protocol (emitters found only by sampled directions).
+        there. In a scene where the guide has nothing to guide, Mitsuba's ``path`` renders the passes (``brdf``, the
+        loop's own reference, excepted). False is the paper's protocol (emitters found only by sampled directions).
       ``learn_nee_light`` (bool, true): with ``nee``, the guide learns the full incident radiance its sampled
         directions bring back, light that emitter sampling also finds included; false: only the share of emission
         that next-event estimation leaves to sampled directions (their MIS weight).
-      ``path_fallback`` (bool, false): with ``nee``: where the guide has nothing to guide, every pass is Mitsuba's
-        ``path``; otherwise, after a tenth of the budget, two ``path`` passes are compared with the guide's last two
-        and the rest of the budget goes to the one predicted the lower error (:mod:`guiding.render.path_fallback`;
-        guides with iterations, the SD-tree, only in the first case). ``mi.render`` then returns an unbiased mix.
+      ``path_fallback`` (bool, false): with ``nee``: after a tenth of the budget, two passes of Mitsuba's ``path`` are
+        compared with the guide's last two and the rest of the budget goes to the one predicted the lower error
+        (:mod:`guiding.render.path_fallback`; not for guides with iterations, the SD-tree). ``mi.render`` then
+        returns an unbiased mix.
       ``statistics`` (bool, false): grid methods only: the guide counts guided vertices, proposals and acceptances
         per pass (``guided_samples``, ``acceptance_rate``, … in the pass statistics; off by default, they cost
         atomics on every bounce).
 
     Attributes read by the progressive renderer and the benchmark after each pass: ``path_count``,
     ``hit_count`` (paths with a non-zero contribution) and ``ray_count`` (rays traced), reset by
-    :meth:`reset_counters`. After ``mi.render``, ``last_result`` holds the :class:`~guiding.render.progressive.RenderResult`
+    :meth:`reset_counters` (passes of Mitsuba's ``path`` count nothing: :attr:`counts_paths`). After ``mi.render``, ``last_result`` holds the :class:`~guiding.render.progressive.RenderResult`
     (per-pass statistics, iterations, when training stopped).
     """
 
@@ -91,7 +94,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         self.path_guide = guide      # what the path loop asks (see prepare)
         self.freeze = props.get("freeze", True)
         self.frozen_passes = None     # the FrozenPasses of the scene last prepared (None: traced passes)
-        self.fallback_integrator = None   # Mitsuba's path, where path_fallback applies to the scene last prepared
+        self.path_integrator = None   # Mitsuba's path, for the scene last prepared where nee and the guide learn
         self.last_result = None
         self.reset_counters()
 
@@ -114,7 +117,10 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
 
     def render_pass(self, scene: mi.Scene, sensor: mi.Sensor, seed: int, spp: int) -> mi.TensorXf:
         """One pass of ``spp`` samples per pixel with the guide as it is (Mitsuba's own ``render``; frozen, see
-        ``freeze``, once :meth:`prepare` has seen the scene)."""
+        ``freeze``, once :meth:`prepare` has seen the scene), or Mitsuba's ``path`` where it renders the passes
+        (:attr:`renders_path`)."""
+        if self.renders_path:
+            return mi.render(scene, integrator=self.path_integrator, sensor=sensor, seed=seed, spp=spp)
         if self.freeze and self.frozen_passes is not None and self.frozen_passes.scene_id == id(scene):
             return self.frozen_passes.render(scene, sensor, seed, spp)
         return mi.render(scene, integrator=_PassRenderer(self), sensor=sensor, seed=seed, spp=spp)
@@ -122,8 +128,10 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
     def prepare(self, scene: mi.Scene) -> None:
         """Before the first pass on ``scene``: the guide allocates its tables; and where no BSDF of the scene is one
         the guide guides, the passes trace plain BSDF sampling, without the guide's code (masked off at every
-        vertex, it would still cost every bounce). The passes on ``scene`` are frozen from here on (``freeze``).
-        With ``path_fallback``, Mitsuba's ``path`` is made ready (:mod:`guiding.render.path_fallback`).
+        vertex, it would still cost every bounce), or with ``nee`` are Mitsuba's ``path`` (:attr:`renders_path`).
+        The passes on ``scene`` are frozen from here on (``freeze``).
+        With ``nee`` and a guide that learns, Mitsuba's ``path`` is made ready (for those passes and the path
+        fallback, :mod:`guiding.render.path_fallback`).
         With ``nee``, a scene without emitters, or with one that emitter sampling cannot sample
         (:func:`~guiding.render.emitter_sampling.unsampleable_emitters`), is refused (GuidingError, one line)."""
         if self.nee and not scene.emitters():
@@ -133,12 +141,29 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
             raise GuidingError(f"nee cannot sample the emitter {'; '.join(unsampleable)}: render it without nee")
         self.guide.prepare(scene)
         self.path_guide = self.guide if self.guide.guides_any(scene) else _BSDF_SAMPLING
-        self.frozen_passes = FrozenPasses(self, scene, _PassRenderer) if self.freeze and recordable(scene) else None
-        # BSDF sampling with NEE (a guide that learns nothing) is path's estimator already: nothing to fall back to.
-        learns = self.guide.records()
-        self.fallback_integrator = (mi.load_dict({"type": "path", "max_depth": self.max_depth,
-                                                  "rr_depth": self.rr_depth})
-                                    if self.path_fallback and learns else None)
+        # BSDF sampling with NEE is path's estimator: brdf (a guide that learns nothing) keeps the loop, as its
+        # reference; a guide with nothing to guide hands its passes to path, which renders them at path's cost.
+        self.path_integrator = (mi.load_dict({"type": "path", "max_depth": self.max_depth, "rr_depth": self.rr_depth})
+                                if self.nee and self.guide.records() else None)
+        traced = self.freeze and recordable(scene) and not self.renders_path
+        self.frozen_passes = FrozenPasses(self, scene, _PassRenderer) if traced else None
+
+    @property
+    def renders_path(self) -> bool:
+        """Whether Mitsuba's ``path`` renders the passes on the scene last prepared: with ``nee``, where a guide that
+        learns has nothing to guide."""
+        return self.path_integrator is not None and not self.guides_scene
+
+    @property
+    def fallback_integrator(self) -> mi.SamplingIntegrator | None:
+        """Mitsuba's ``path`` where the path fallback applies to the scene last prepared (``path_fallback``, and the
+        guide guides something there), else None."""
+        return self.path_integrator if self.path_fallback and self.guides_scene else None
+
+    @property
+    def counts_paths(self) -> bool:
+        """Whether the passes count paths, hits and rays (Mitsuba's ``path`` does not)."""
+        return not self.renders_path
 
     @property
     def guides_scene(self) -> bool:
@@ -202,12 +227,12 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
             weight = dr.select(continues, weight, 0)
 
             # -------------------------- Russian roulette --------------------------
-            β_next = β * weight
+            throughput = dr.max(β * weight)
             if dr.hint(self.nee, mode="scalar"):
+                # As Mitsuba's path: each refraction into glass scales β by 1/η², which must not end the path there
                 η *= bs.eta
-                q = dr.minimum(dr.max(β_next) * dr.square(η), defaults.RR_MAX_NEE)    # as Mitsuba's path
-            else:
-                q = dr.minimum(dr.maximum(dr.max(β_next), self.rr_min), 1)
+                throughput *= dr.square(η)
+            q = dr.minimum(dr.maximum(throughput, self.rr_min), 1)
             roulette = continues & (depth >= self.rr_depth)
             survives = ~roulette | (sampler.next_1d(roulette) < q)
             weight = dr.select(survives, dr.select(roulette, weight / q, weight), 0)

@@ -14,8 +14,9 @@ equal time (results/paper/README.md, "Practical"). The check, made once per rend
    at its own measured cost per spp (render and the guide's update, compilation excluded).
 
 Where the guide has nothing to guide in the scene (:meth:`~guiding.guides.base.Guide.guides_any`), every pass is
-``path``. Guides with iterations (the SD-tree) are checked only for that: their final image already weighs their
-iterations (:mod:`guiding.render.progressive`).
+``path`` already, with or without the fallback (:attr:`~guiding.render.integrator.GuidedPathIntegrator.renders_path`).
+Guides with iterations (the SD-tree) are not checked: their final image already weighs their iterations
+(:mod:`guiding.render.progressive`).
 
 **Unbiased.** The passes before the decision (the two ``path`` passes included) form one image, the passes after it
 another, and the final image weighs them by shares made of the spp and the times alone, never of the images
@@ -103,26 +104,24 @@ class PathFallback:
     """The check of one render: which strategy renders the next pass, the passes it compares, its decision.
 
     Parameters:
-      driver: the pass driver of Mitsuba's ``path`` (:meth:`for_render`; None where no pass is rendered).
-      guided: whether the guide guides anything in the scene (False: every pass is ``path``).
-      checked: whether to compare the strategies (False for guides with iterations: only the case above applies).
+      driver: the pass driver of Mitsuba's ``path`` (:meth:`for_render`).
+      checked: whether to compare the strategies (False for guides with iterations: every pass is the guide's).
     """
 
-    def __init__(self, driver: PassDriver | None, guided: bool, checked: bool):
+    def __init__(self, driver: PassDriver, checked: bool):
         self.driver = driver
         self.guided: deque[PassImage] = deque(maxlen=COMPARED_PASSES)
         self.path_passes: list[PassImage] = []
-        self.decision = None if guided else FallbackDecision(PATH, "the guide has nothing to guide in this scene")
+        self.decision = None
         self.checked = checked
         self.comparing = False
 
     @classmethod
     def for_render(cls, scene: mi.Scene, path: mi.SamplingIntegrator, sensor, guide) -> PathFallback:
-        """The check of a render of ``scene`` with Mitsuba's ``path`` beside ``guide`` (None where it has nothing
-        to guide)."""
+        """The check of a render of ``scene`` with Mitsuba's ``path`` beside ``guide``."""
         driver = PassDriver(scene, path, sensor)
         driver.prepare()
-        return cls(driver, guided=guide is not None, checked=guide is not None and guide.iteration_spp() is None)
+        return cls(driver, checked=guide.iteration_spp() is None)
 
     @property
     def renders_path(self) -> bool:
