@@ -336,5 +336,6 @@ def test_with_nothing_to_guide_the_passes_are_mitsubas_path():
     path = render(scene, mi.load_dict({"type": "path", "max_depth": 16}), budget, seed=7, progress=False)
     assert np.array_equal(ours.image, path.image) and ours.image.max() > 0
     assert all(np.isnan(p.hit_rate) for p in ours.passes)    # path counts no paths
+    assert "nothing to guide" in ours.path_fallback["reason"]   # stats.json says who rendered
     brdf = render(scene, _nee_integrator("brdf"), budget, seed=7, progress=False)
     assert not np.array_equal(brdf.image, path.image) and all(p.hit_rate > 0 for p in brdf.passes)

@@ -114,11 +114,14 @@ def command_render(args) -> None:
 
 
 def _fallback_text(stats: dict) -> str:
-    """What the path fallback decided, for the render's last line ('' without one)."""
+    """What Mitsuba's path rendered, for the render's last line: the path fallback's decision, or every pass where
+    the guide has nothing to guide ('' where it rendered nothing)."""
     decision = stats.get("path_fallback")
     if decision is None:
         return ""
-    return f", path fallback: {decision['reason']}" + (f" (after {decision['spp']} spp)" if decision["spp"] else "")
+    if not decision["spp"]:
+        return f", every pass Mitsuba's path: {decision['reason']}"
+    return f", path fallback: {decision['reason']} (after {decision['spp']} spp)"
 
 
 def command_reference(args) -> None:

@@ -366,7 +366,8 @@ def _fallback_choices(spec: dict, runs: pd.DataFrame, header: list[str]) -> list
 
     rows = [[f"**{scene}**", *[choices(scene, m) for m in spec["methods"]]] for scene in spec["scenes"]]
     return ["What rendered the rest of the budget after the path fallback's check (seeds), for the methods that "
-            "have one:", markdown_table(header, rows)]
+            "have one, and `path` where a method has nothing to guide (then every pass is Mitsuba's `path`):",
+            markdown_table(header, rows)]
 
 
 def practical(spec: dict, runs: pd.DataFrame) -> tuple[pd.DataFrame, str]:

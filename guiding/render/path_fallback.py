@@ -50,6 +50,7 @@ COMPARED_PASSES = 2
 GUIDE, PATH = "guide", "path"
 
 
+
 def predicted_mae(mean: np.ndarray, first: np.ndarray, first_spp: int, second: np.ndarray, second_spp: int,
                   spp: float) -> float:
     """The tone-mapped MAE (:func:`guiding.metrics.mae_tonemapped`) that an image of ``spp`` samples per pixel of
@@ -89,6 +90,12 @@ class FallbackDecision:
 
     def summary(self) -> dict:
         return asdict(self)
+
+
+def nothing_to_guide() -> FallbackDecision:
+    """The record of a render whose every pass Mitsuba's ``path`` rendered because the guide had nothing to guide
+    (:attr:`~guiding.render.integrator.GuidedPathIntegrator.renders_path`; with or without the check)."""
+    return FallbackDecision(PATH, "the guide has nothing to guide in this scene")
 
 
 def _rgb(image) -> np.ndarray:

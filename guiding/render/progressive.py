@@ -71,7 +71,7 @@ from guiding.render import defaults
 from guiding.render.driver import PassDriver, pass_seed
 from guiding.render.iterations import IterationImages, IterationStats, extrapolated_variance
 from guiding.render.pass_schedule import MIN_ITERATION_PASSES, PassSchedule
-from guiding.render.path_fallback import COMPARED_PASSES, PATH, PathFallback
+from guiding.render.path_fallback import COMPARED_PASSES, PATH, PathFallback, nothing_to_guide
 from guiding.render.progress import Progress
 
 #: The automatic budget trusts an iteration's variance only if it started after this many spp (Tom94's
@@ -136,7 +136,8 @@ class RenderResult:
     combine: str = COMBINE_LAST
     iterations: list[IterationStats] = field(default_factory=list)
     training_stopped: dict | None = None   # {"spp", "seconds", "reason", ...} once the guide stopped learning
-    path_fallback: dict | None = None      # the path fallback's decision (FallbackDecision.summary), if it made one
+    path_fallback: dict | None = None      # what Mitsuba's path rendered (FallbackDecision.summary): the path
+                                           # fallback's decision, or every pass where nothing is guided
 
     @property
     def spp(self) -> int:
@@ -382,6 +383,8 @@ class _ProgressiveRender:
         for record, weight in weights:
             record.weight = weight
         fallback = self.fallback.decision if self.fallback is not None else None
+        if getattr(self.driver.integrator, "renders_path", False):
+            fallback = nothing_to_guide()
         return RenderResult(image.astype(np.float32), self.passes, self.budget, spp_in_image, self.combine,
                             self.iterations, self.training_stopped,
                             fallback.summary() if fallback is not None else None)
