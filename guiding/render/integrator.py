@@ -65,8 +65,9 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
 
     Attributes read by the progressive renderer and the benchmark after each pass: ``path_count``,
     ``hit_count`` (paths with a non-zero contribution) and ``ray_count`` (rays traced), reset by
-    :meth:`reset_counters` (passes of Mitsuba's ``path`` count nothing: :attr:`counts_paths`). After ``mi.render``, ``last_result`` holds the :class:`~guiding.render.progressive.RenderResult`
-    (per-pass statistics, iterations, when training stopped).
+    :meth:`reset_counters` (passes of Mitsuba's ``path`` count nothing: :attr:`counts_paths`). After ``mi.render``,
+    ``last_result`` holds the :class:`~guiding.render.progressive.RenderResult` (per-pass statistics, iterations,
+    when training stopped).
     """
 
     def __init__(self, props: mi.Properties = None, guide: Guide | None = None):
