@@ -19,7 +19,7 @@ from guiding.guides.methods import make_guide
 from guiding.render.emitter_sampling import PreviousVertex, hit_weight, mis_weight, sample_emitter
 from guiding.render import defaults
 from guiding.render.driver import PassDriver, pass_seed
-from guiding.render.integrator import GuidedPathIntegrator
+from guiding.render.integrator import GuidedPathIntegrator, continuation_probability
 from guiding.render.progressive import Budget, render
 from guiding.scenes import load_scene
 
@@ -111,6 +111,17 @@ def test_mis_weights_of_emitter_and_guide_sampling_sum_to_one(scenes, scene_name
     assert drawn.sum() > 1000
     np.testing.assert_allclose(guide.pdf(si, bsdf, ctx, bs.wo, active).numpy()[drawn], bs.pdf.numpy()[drawn],
                                rtol=1e-4)
+
+
+def test_russian_roulette_weighs_beta_by_eta_squared_and_keeps_the_papers_floor():
+    """q = min(max(max_rgb(β)·η², 0.05), 1), computed by hand: η² as path's (inside glass η = 1.5 lifts β·η²), the
+    paper's floor where path caps at 0.95, and without η (no NEE) the paper's q unchanged."""
+    β = mi.Spectrum([0.02, 0.2, 0.01], [0.03, 0.5, 0.02], [0.01, 0.3, 0.04])    # lanes: max_rgb 0.03, 0.5, 0.04
+    with_nee = continuation_probability(β, mi.Float([1.5, 1.5, 1.0]), 0.05).numpy()
+    assert with_nee == pytest.approx([0.0675, 1.0, 0.05])
+    assert continuation_probability(β, None, 0.05).numpy() == pytest.approx([0.05, 0.5, 0.05])
+    assert continuation_probability(β, mi.Float([1.0, 1.0, 1 / 1.5]), 0.01).numpy() == pytest.approx(
+        [0.03, 0.5, 0.04 / 2.25])
 
 
 def test_power_heuristic():

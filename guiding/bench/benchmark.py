@@ -218,7 +218,7 @@ def benchmark(scenes: list[tuple[str, float]], methods: list[str], passes: int =
             if method not in stages and method not in ("path", TRACE_ONLY):
                 continue      # a breakdown variant: in the breakdown table only
             counted = timed.get(f"{method}[+statistics]", records)
-            counts = sum(r.paths for r in records) > 0      # Mitsuba's path (its own or a guide's) counts nothing
+            counts = getattr(integrators[method], "counts_paths", False)   # Mitsuba's path counts nothing
             mrays = sum(r.rays for r in records) / sum(r.kernel for r in records) / 1e6 if counts else None
             guide = getattr(integrators[method], "guide", None)
             memory = guide.stats().get("memory_bytes", 0) if guide is not None else 0

@@ -228,12 +228,9 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
             weight = dr.select(continues, weight, 0)
 
             # -------------------------- Russian roulette --------------------------
-            throughput = dr.max(β * weight)
             if dr.hint(self.nee, mode="scalar"):
-                # As Mitsuba's path: each refraction into glass scales β by 1/η², which must not end the path there
                 η *= bs.eta
-                throughput *= dr.square(η)
-            q = dr.minimum(dr.maximum(throughput, self.rr_min), 1)
+            q = continuation_probability(β * weight, η if self.nee else None, self.rr_min)
             roulette = continues & (depth >= self.rr_depth)
             survives = ~roulette | (sampler.next_1d(roulette) < q)
             weight = dr.select(survives, dr.select(roulette, weight / q, weight), 0)
@@ -265,6 +262,19 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
                 f"pass_spp={self.pass_spp}, growing_passes={self.growing_passes}, nee={self.nee}, "
                 f"path_fallback={self.path_fallback}, "
                 f"guide={self.guide.name}]")
+
+
+def continuation_probability(throughput: mi.Spectrum, η: mi.Float | None, rr_min: float) -> mi.Float:
+    """Russian roulette's continuation probability ``q = min(max(max_rgb(throughput)·η², rr_min), 1)`` (the paper's
+    without ``η``, the relative index of refraction along the path, which next-event estimation adds).
+
+    η² as Mitsuba's ``path``: each refraction into glass scales β by 1/η², which must not end the path there. The
+    floor ``rr_min`` where ``path`` caps ``q`` at 0.95 instead: a guided path keeps β near its value, and the floor
+    bounds the weight ``1/q`` of a path that survives (results/nee_cost/README.md, "Which roulette")."""
+    largest = dr.max(throughput)
+    if η is not None:
+        largest *= dr.square(η)
+    return dr.minimum(dr.maximum(largest, rr_min), 1)
 
 
 class _PassRenderer(mi.SamplingIntegrator):

@@ -50,7 +50,6 @@ COMPARED_PASSES = 2
 GUIDE, PATH = "guide", "path"
 
 
-
 def predicted_mae(mean: np.ndarray, first: np.ndarray, first_spp: int, second: np.ndarray, second_spp: int,
                   spp: float) -> float:
     """The tone-mapped MAE (:func:`guiding.metrics.mae_tonemapped`) that an image of ``spp`` samples per pixel of
