@@ -14,9 +14,10 @@ import pytest
 from guiding.errors import GuidingError
 from guiding.experiments.testing import scene_vertices, train
 from guiding.experiments.validation import Z_LIMIT, pass_means, z_scores
-from guiding.guides.base import Guide
+from guiding.guides import BSDFGuide, Guide
 from guiding.guides.methods import make_guide
-from guiding.render.emitter_sampling import PreviousVertex, hit_weight, mis_weight, sample_emitter
+from guiding.render.emitter_sampling import (PreviousVertex, hit_weight, mis_weight, sample_emitter_direction,
+                                             weigh_emitter_sample)
 from guiding.render import defaults
 from guiding.render.driver import PassDriver, pass_seed
 from guiding.render.integrator import GuidedPathIntegrator, continuation_probability
@@ -78,9 +79,10 @@ def _nee_integrator(method: str, **properties) -> GuidedPathIntegrator:
 @pytest.mark.parametrize("scene_name", ["cornell-tilted", "environment", "sphere light"])
 @pytest.mark.parametrize("method", ["brdf", "ours", "sdtree"])
 def test_mis_weights_of_emitter_and_guide_sampling_sum_to_one(scenes, scene_name, method):
-    """At vertices camera paths reach, for each emitter sample: its weight (:func:`sample_emitter`) and the weight
-    the loop gives the same emission found by the guide's direction (:func:`hit_weight`, from the density the guide
-    reports for it) sum to one. A trained guide, so that its density is not the BSDF's."""
+    """At vertices camera paths reach, for each emitter sample: its weight (:func:`weigh_emitter_sample`, with the
+    BSDF's value from the guide's ``sample_and_eval``, as in the path loop) and the weight the loop gives the same
+    emission found by the guide's direction (:func:`hit_weight`, from the density the guide reports for it) sum to
+    one. A trained guide, so that its density is not the BSDF's."""
     scene = scenes[scene_name]
     guide = train(scene, make_guide(method), spp=32, seed=1) if method != "brdf" else make_guide(method)
     guide.prepare(scene) if method == "brdf" else None
@@ -89,7 +91,9 @@ def test_mis_weights_of_emitter_and_guide_sampling_sum_to_one(scenes, scene_name
     sampler.seed(5, dr.width(si.p))
     bsdf, ctx = si.bsdf(), mi.BSDFContext()
     active = mi.Bool(True)
-    nee = sample_emitter(scene, sampler, si, bsdf, ctx, guide, active)
+    light = sample_emitter_direction(scene, sampler, si, bsdf, active)
+    value, bsdf_pdf, bs, _ = guide.sample_and_eval(scene, sampler, si, bsdf, ctx, active, light.wo, light.active)
+    nee = weigh_emitter_sample(light, value, bsdf_pdf, guide, si, bsdf, ctx)
     # The emission the guide's direction towards the emitter sample would find, weighted as the loop weighs it.
     hit = scene.ray_intersect(si.spawn_ray(si.to_world(nee.wo)))
     previous = PreviousVertex(mi.Interaction3f(si), guide.pdf(si, bsdf, ctx, nee.wo, active), mi.Bool(False))
@@ -104,13 +108,33 @@ def test_mis_weights_of_emitter_and_guide_sampling_sum_to_one(scenes, scene_name
     # Not by construction (an emitter sample weighted 1 and a found emission weighted 0 would sum to one too): the
     # guide's direction takes a share somewhere, if a small one where the light is small.
     assert (1 - nee.weight.numpy()[lit.numpy()]).max() > 1e-5
-    # The loop weighs a found emission with the density `sample` reports (bs.pdf), the weights above use `pdf`:
-    # the two agree at the directions the guide draws.
-    bs, _ = guide.sample(scene, sampler, si, bsdf, ctx, active)
+    # The loop weighs a found emission with the density the guide's sample reports (bs.pdf), the weights above use
+    # `pdf`: the two agree at the directions the guide draws.
     drawn = ((bs.pdf > 0) & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)).numpy()
     assert drawn.sum() > 1000
     np.testing.assert_allclose(guide.pdf(si, bsdf, ctx, bs.wo, active).numpy()[drawn], bs.pdf.numpy()[drawn],
                                rtol=1e-4)
+
+
+@pytest.mark.parametrize("scene_name", ["cornell-tilted", "sphere light"])
+def test_bsdf_sampling_evaluates_and_samples_in_one_call_as_in_two(scenes, scene_name):
+    """BSDF sampling's ``sample_and_eval`` (Mitsuba's ``eval_pdf_sample``, one BSDF call) returns what a guide's
+    evaluate-then-sample returns with the same random numbers: the loop's estimator is unchanged by the merged call."""
+    scene = scenes[scene_name]
+    si = scene_vertices(scene, count=2000, seed=4)
+    bsdf, ctx, active = si.bsdf(), mi.BSDFContext(), mi.Bool(True)
+    results = []
+    for guide in (Guide(), BSDFGuide()):
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(7, dr.width(si.p))
+        light = sample_emitter_direction(scene, sampler, si, bsdf, active)
+        value, bsdf_pdf, bs, weight = guide.sample_and_eval(scene, sampler, si, bsdf, ctx, active, light.wo,
+                                                            light.active)
+        lit = light.active.numpy()
+        results.append((value.numpy()[:, lit], bsdf_pdf.numpy()[lit], bs.wo.numpy(), bs.pdf.numpy(), weight.numpy()))
+    assert results[0][1].size > 500 and (results[0][1] > 0).sum() > 500
+    for separate, merged in zip(*results):
+        np.testing.assert_allclose(merged, separate, rtol=1e-6, atol=1e-7)
 
 
 def test_russian_roulette_weighs_beta_by_eta_squared_and_keeps_the_papers_floor():

@@ -120,6 +120,16 @@ class Guide:
         :meth:`locate` found at ``si`` (None: the guide finds it itself)."""
         return bsdf.sample(bsdf_ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
 
+    def sample_and_eval(self, scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr,
+                        bsdf_ctx: mi.BSDFContext, active: mi.Bool, wo: mi.Vector3f, wo_active: mi.Bool,
+                        vertex=None) -> tuple[mi.Spectrum, mi.Float, mi.BSDFSample3f, mi.Spectrum]:
+        """The BSDF's value (``f·cos``) and density at local direction ``wo`` for the lanes ``wo_active`` (next-event
+        estimation's emitter direction), then :meth:`sample` for the lanes ``active``: what ``bsdf.eval_pdf_sample``
+        returns. A guide that samples other directions than the BSDF's evaluates, then samples: two BSDF calls."""
+        value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, wo_active)
+        bs, weight = self.sample(scene, sampler, si, bsdf, bsdf_ctx, active, vertex)
+        return value, bsdf_pdf, bs, weight
+
     def record(self, state, si: mi.SurfaceInteraction3f, emitted: mi.Spectrum, bs: mi.BSDFSample3f,
                weight: mi.Spectrum, continues: mi.Bool, active: mi.Bool, vertex=None):
         """Learn from vertex ``si`` of the active paths.

@@ -10,3 +10,10 @@ class BSDFGuide(Guide):
 
     def update_due(self, spp_done: int) -> None:
         return None     # nothing changes: passes may grow
+
+    def sample_and_eval(self, scene, sampler, si, bsdf, bsdf_ctx, active, wo, wo_active, vertex=None):
+        """One BSDF call, Mitsuba's ``eval_pdf_sample``, as its ``path`` makes at every vertex: a BSDF call less per
+        bounce than evaluating, then sampling (the loop's cost against ``path``'s: results/nee_cost/README.md)."""
+        value, bsdf_pdf, bs, weight = bsdf.eval_pdf_sample(bsdf_ctx, si, wo, sampler.next_1d(active),
+                                                           sampler.next_2d(active), active)
+        return value, bsdf_pdf, bs, weight

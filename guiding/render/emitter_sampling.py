@@ -69,6 +69,17 @@ def hit_weight(scene: mi.Scene, si: mi.SurfaceInteraction3f, previous: PreviousV
 
 
 @dataclass
+class EmitterDirection:
+    """One emitter sample at a vertex, before the BSDF is evaluated there: the direction sample, the emitter's weight
+    ``Le/p_e`` (visibility tested), the direction in the local frame, and the lanes that have a sample."""
+
+    ds: mi.DirectionSample3f
+    emitter_weight: mi.Spectrum
+    wo: mi.Vector3f
+    active: mi.Bool
+
+
+@dataclass
 class EmitterSample:
     """One next-event sample at a vertex: its contribution before the path weight β (``f·cos·Le/p_e`` times its MIS
     weight), its direction (local) and the two densities of the MIS weight."""
@@ -80,17 +91,25 @@ class EmitterSample:
     weight: mi.Float
 
 
-def sample_emitter(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr,
-                   bsdf_ctx: mi.BSDFContext, guide, active: mi.Bool, vertex=None) -> EmitterSample:
-    """Next-event estimation at ``si`` for the lanes ``active`` whose BSDF has a smooth component: an emitter sample
-    (visibility tested), the BSDF's value there and its MIS weight against ``guide.pdf`` (the loop's own density;
-    ``vertex``: what ``guide.locate`` found at ``si``, None: the guide finds it itself)."""
+def sample_emitter_direction(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr,
+                             active: mi.Bool) -> EmitterDirection:
+    """Next-event estimation's emitter sample at ``si``, for the lanes ``active`` whose BSDF has a smooth component
+    (visibility tested). The BSDF's value there comes from the guide's
+    :meth:`~guiding.guides.base.Guide.sample_and_eval`, in the call that samples the next direction."""
     active = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
     ds, emitter_weight = scene.sample_emitter_direction(si, sampler.next_2d(active), True, active)
     active &= ds.pdf != 0
-    wo = si.to_local(ds.d)
-    value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, active)
-    guide_pdf = guide.pdf(si, bsdf, bsdf_ctx, wo, active, bsdf_pdf, vertex)
+    return EmitterDirection(ds, emitter_weight, si.to_local(ds.d), active)
+
+
+def weigh_emitter_sample(light: EmitterDirection, value: mi.Spectrum, bsdf_pdf: mi.Float, guide,
+                         si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext,
+                         vertex=None) -> EmitterSample:
+    """The emitter sample ``light`` with the BSDF's ``value`` (``f·cos``) and density ``bsdf_pdf`` in its direction:
+    its MIS weight against ``guide.pdf``, the loop's own density there (``vertex``: what ``guide.locate`` found at
+    ``si``, None: the guide finds it itself), and its contribution."""
+    ds = light.ds
+    guide_pdf = guide.pdf(si, bsdf, bsdf_ctx, light.wo, light.active, bsdf_pdf, vertex)
     weight = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, guide_pdf))
-    contribution = dr.select(active, weight * value * emitter_weight, 0)
-    return EmitterSample(contribution, wo, ds.pdf, guide_pdf, weight)
+    contribution = dr.select(light.active, weight * value * light.emitter_weight, 0)
+    return EmitterSample(contribution, light.wo, ds.pdf, guide_pdf, weight)

@@ -23,10 +23,11 @@ import drjit as dr
 import mitsuba as mi
 
 from guiding.errors import GuidingError
-from guiding.guides import Guide, NoPathState
+from guiding.guides import BSDFGuide, Guide, NoPathState
 from guiding.guides.methods import make_guide
 from guiding.render import defaults
-from guiding.render.emitter_sampling import PreviousVertex, hit_weight, sample_emitter, unsampleable_emitters
+from guiding.render.emitter_sampling import (PreviousVertex, hit_weight, sample_emitter_direction,
+                                             unsampleable_emitters, weigh_emitter_sample)
 from guiding.render.frozen_pass import FrozenPasses, recordable
 from guiding.render.progressive import Budget, render
 
@@ -197,7 +198,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         η = mi.Float(1) if self.nee else NoPathState()   # Relative index of refraction (Russian roulette with nee)
 
         while dr.hint(active, max_iterations=self.max_depth, label="Guided path tracer"):
-            si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0))
+            si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0), active=active)
             rays += 1
 
             # ----------------------------- Emission -----------------------------
@@ -219,12 +220,15 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
             bsdf = si.bsdf(ray)
             vertex = guide.locate(si, bsdf, continues)
 
-            # ------------------ Emitter sampling (next-event estimation) ------------------
+            # ------- Emitter sampling (next-event estimation) and direction sampling (the guide) -------
             if dr.hint(self.nee, mode="scalar"):
-                L += β * sample_emitter(scene, sampler, si, bsdf, bsdf_ctx, guide, continues, vertex).contribution
-
-            # ------------------- Direction sampling (the guide) -------------------
-            bs, weight = guide.sample(scene, sampler, si, bsdf, bsdf_ctx, continues, vertex)
+                light = sample_emitter_direction(scene, sampler, si, bsdf, continues)
+                # The BSDF's value towards the emitter and the next direction: one BSDF call where the guide can.
+                value, bsdf_pdf, bs, weight = guide.sample_and_eval(scene, sampler, si, bsdf, bsdf_ctx, continues,
+                                                                    light.wo, light.active, vertex)
+                L += β * weigh_emitter_sample(light, value, bsdf_pdf, guide, si, bsdf, bsdf_ctx, vertex).contribution
+            else:
+                bs, weight = guide.sample(scene, sampler, si, bsdf, bsdf_ctx, continues, vertex)
             weight = dr.select(continues, weight, 0)
 
             # -------------------------- Russian roulette --------------------------
@@ -295,7 +299,7 @@ class _PassRenderer(mi.SamplingIntegrator):
 
 
 #: The path loop's guide in a scene with nothing to guide.
-_BSDF_SAMPLING = Guide()
+_BSDF_SAMPLING = BSDFGuide()
 
 _registered = set()
 
