@@ -211,6 +211,50 @@ def test_rebuild_growth_rebuilds_geometrically_and_keeps_every_target():
     assert counts[0] == 11 and sums[0] == pytest.approx(np.arange(8, 89, 8).sum())
 
 
+def test_stopped_training_freezes_the_record_at_its_next_rebuild():
+    """Asked to stop between rebuilds, the guide learns on to its next rebuild (the targets recorded since the last
+    one are folded in, none lost), then records nothing, rebuilds nothing and sets no more updates due; asked right
+    after a rebuild, it stops at once."""
+    guide = GridGuide(spatial_resolution=1, directional_resolution=1, rule="sarsa", sampler="sphere_inv",
+                      rebuild_growth=0.5)
+    record = guide.record_table
+    for spp_done in (8, 16, 24, 32, 40):      # rebuilt at 8, 16, 24 and 32; 40 waits for 48
+        record.accumulate(mi.UInt32(0), mi.Float(spp_done), mi.Bool(True))
+        guide.update(spp_done)
+    guide.stop_training()
+    assert guide.records() and guide.update_due(40) == 48
+    record.accumulate(mi.UInt32(0), mi.Float(48), mi.Bool(True))
+    assert guide.update(48).stats["rebuilt"]
+    assert not guide.records() and guide.update_due(48) is None
+    assert record.q.numpy()[0] == pytest.approx(np.mean(np.arange(8, 49, 8)))
+    record.accumulate(mi.UInt32(0), mi.Float(1000), mi.Bool(True))   # what a frozen guide is not asked to record
+    assert not guide.update(64).stats["rebuilt"]
+    assert record.q.numpy()[0] == pytest.approx(np.mean(np.arange(8, 49, 8)))
+
+    at_rebuild = GridGuide(spatial_resolution=1, directional_resolution=1, rule="sarsa", sampler="sphere_inv")
+    at_rebuild.update(8)
+    at_rebuild.stop_training()
+    assert not at_rebuild.records()
+
+
+def test_learning_share_stops_training_and_lets_the_passes_grow(cornell):
+    """With ``learning_share`` ½ of a 128-spp budget, the guide learns from the 8-spp passes up to 64 spp (``ours``
+    rebuilds after every pass, so it stops there at once); the passes after that record nothing and grow."""
+    from guiding.guides.methods import make_guide
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.render.progressive import Budget, render
+
+    guide = make_guide("ours", learning_share=0.5)
+    result = render(cornell, GuidedPathIntegrator(guide=guide), Budget(spp=128), seed=0, progress=False)
+    assert result.training_stopped["spp"] == 64
+    assert result.training_stopped["reason"] == "the guide learns from 0.5 of the budget"
+    passes = [p.spp for p in result.passes]
+    assert passes[:8] == [8] * 8 and max(passes[8:]) > 8 and sum(passes) == 128
+    assert not guide.records()
+    with pytest.raises(ValueError, match="learning_share"):
+        make_guide("ours", learning_share=0)
+
+
 def test_ours_plus_rebuilds_less_often_than_the_paper():
     from guiding.guides.methods import make_guide
 

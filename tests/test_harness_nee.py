@@ -25,8 +25,8 @@ def ci_config() -> dict:
 
 def test_paper_config_runs_the_practical_experiment_on_every_scene():
     """`practical`: Mitsuba's path against sdtree, ours and ours-plus with next-event estimation, and ours-plus with
-    the path fallback, at the paper's equal-time budget, on the four shared scenes at the paper's scales and on every
-    shipped scene at 1/8."""
+    the path fallback, learning from a quarter of the budget, and both, at the paper's equal-time budget, on the four
+    shared scenes at the paper's scales and on every shipped scene at 1/8."""
     the_plan = plan(load_config(PAPER_CONFIG), check=False)
     runs = the_plan.experiment_runs("practical")
     shipped = {folder.name for folder in (ROOT / "scenes").iterdir() if (folder / "scene.xml").is_file()}
@@ -35,7 +35,8 @@ def test_paper_config_runs_the_practical_experiment_on_every_scene():
     assert all(scales[scene] == 0.125 for scene in shipped | {"cornell-box"})
     assert all(scales[scene] == 0.0625 for scene in ("veach-ajar", "staircase2", "living-room"))
     assert scales["cornell-box"] == the_plan.config["scenes"]["cornell-box"]["scale"]
-    methods = {"path", "sdtree", "ours", "ours-plus", "ours-plus-fallback"}
+    methods = {"path", "sdtree", "ours", "ours-plus", "ours-plus-fallback", "ours-plus-quarter",
+               "ours-plus-quarter-fallback"}
     assert {r.method for r in runs} == methods and {r.seed for r in runs} == {0, 1, 2}
     assert len(runs) == len(scales) * len(methods) * 3 and all(r.timed and r.samples_emitters for r in runs)
     equal_time = the_plan.experiment_runs("equal_time")[0]
@@ -46,6 +47,10 @@ def test_paper_config_runs_the_practical_experiment_on_every_scene():
             assert "--method path " in args and "--nee" not in args and run.label == "Mitsuba path"
         elif run.method == "ours-plus-fallback":
             assert "--method ours-plus --nee --path-fallback " in args and run.path_fallback
+        elif run.method == "ours-plus-quarter":
+            assert "--method ours-plus --set learning_share=0.25 --nee " in args and not run.path_fallback
+        elif run.method == "ours-plus-quarter-fallback":
+            assert "--method ours-plus --set learning_share=0.25 --nee --path-fallback " in args and run.path_fallback
         else:
             assert f"--method {run.method} --nee " in args and run.label.endswith(" + NEE") and not run.path_fallback
     assert not any(r.nee or "--nee" in the_plan.render_args(r) for r in the_plan.runs if r.experiment != "practical")

@@ -90,7 +90,8 @@ class Guide:
     # ----------------------------------------------------------- schedule (host side)
     # A guide whose learning runs in iterations (the SD-tree) ends one by setting ``UpdateResult.iteration_done``;
     # the renderer then asks ``iteration_spp`` whether the next fits a seconds budget and
-    # calls ``stop_training`` when it does not. Guides without iterations keep these defaults and are never asked.
+    # calls ``stop_training`` when it does not. Guides without iterations keep these defaults and are never asked
+    # about iterations; any guide may learn from a share of the budget only (``learning_share``).
     def set_budget(self, spp: int | None) -> None:
         """The render's spp budget (None under a seconds budget), told once before the first pass."""
 
@@ -98,6 +99,11 @@ class Guide:
         """Length in spp of the iteration the next pass belongs to; None for a guide without iterations (or when
         it is unknown)."""
         return None
+
+    def learning_share(self) -> float:
+        """The share of the render's budget (spp, or counted seconds) after which the renderer calls
+        :meth:`stop_training`; 1: the guide learns to the end of the budget (the default)."""
+        return 1.0
 
     def stop_training(self) -> None:
         """Freeze the distributions: the remaining passes record nothing and run to the end of the budget."""

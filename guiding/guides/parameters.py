@@ -96,6 +96,10 @@ class GridParameters:
         at most g between rebuilds, and the passes in between can be merged into one of a power-of-two size,
         :mod:`guiding.render.pass_schedule`); the targets of the passes in between are kept and folded in at the next
         rebuild. Default 0: after every pass (the paper's).
+      learning_share: the share of the render's budget (its spp, or its counted seconds) the guide learns from; the
+        renderer then stops its training (:meth:`~guiding.guides.base.Guide.stop_training`), and the guide as it is
+        renders the rest without recording and without rebuilds, in passes that grow (default 1: it learns to the
+        end, the paper's).
       statistics: count, per pass, guided vertices, invalid samples, rejection proposals and acceptances (default
         False; :mod:`~guiding.guides.grid.counters`). The counters are atomics on 1-element arrays, several per
         bounce, a good part of its cost (the benchmark's ``[+statistics]`` stage); they are traced only when on, and
@@ -119,6 +123,7 @@ class GridParameters:
     refine_share: float = 0.05
     refine_capacity: int = 4096
     rebuild_growth: float = 0.0
+    learning_share: float = 1.0
     statistics: bool = False
 
     def __post_init__(self):
@@ -140,6 +145,7 @@ class GridParameters:
         _check(1 <= self.sub_resolution <= 16, f"sub_resolution must be in 1..16, got {self.sub_resolution}")
         _check(0 < self.refine_share <= 1, f"refine_share must be in (0, 1], got {self.refine_share}")
         _check(self.rebuild_growth >= 0, f"rebuild_growth must be >= 0, got {self.rebuild_growth}")
+        _check(0 < self.learning_share <= 1, f"learning_share must be in (0, 1], got {self.learning_share}")
         _check(self.refine_capacity >= 1, f"refine_capacity must be >= 1, got {self.refine_capacity}")
 
 

@@ -344,9 +344,13 @@ class _ProgressiveRender:
                 guide.stop_training()
                 self.training_stopped = {"spp": self.spp_total, "seconds": self.counted, "iteration": ended.index,
                                          **stop}
+        share = guide.learning_share() if guide is not None else 1.0
+        if self.recorded and share < 1 and self._budget_spent() >= share:
+            guide.stop_training()      # a grid guide stops at its next rebuild
         if self.recorded and not guide.records() and self.training_stopped is None:
-            self.training_stopped = {"spp": self.spp_total, "seconds": self.counted,
-                                     "reason": "the guide's schedule: its final iteration records nothing"}
+            reason = (f"the guide learns from {share:g} of the budget" if share < 1
+                      else "the guide's schedule: its final iteration records nothing")
+            self.training_stopped = {"spp": self.spp_total, "seconds": self.counted, "reason": reason}
 
     def _check_fallback(self) -> None:
         """The path fallback's check (:mod:`guiding.render.path_fallback`): its ``path`` passes start once it is

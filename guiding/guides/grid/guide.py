@@ -68,6 +68,7 @@ class GridGuide(Guide):
         self.smooth_bsdf_share = p.smooth_bsdf_share
         self.rebuild_growth = p.rebuild_growth
         self._rebuilt_at = 0           # spp done at the record's last rebuild
+        self._updated_at = 0           # spp done at the last update
         self._table_stats = {}         # memo pairs and refinement figures of the last rebuild
         self._bsdfs = LambertianBsdfs()   # the scene's Lambertian BSDFs (none known until prepare)
         self.record_table = RadianceRecord(
@@ -77,16 +78,20 @@ class GridGuide(Guide):
         self.counters = PassCounters(p.statistics)
         self.rule, self.sampler = self.strategy.build(self.record_table, p, self.counters)
         self.trained = False
+        self.learning = True           # False from the first rebuild after the renderer stopped its training
+        self._stopping = False         # the renderer stopped its training (learning_share)
 
     # ================================================================ host side
     def prepare(self, scene: mi.Scene) -> None:
         self.record_table.set_bounds(scene.bbox())
         self._bsdfs = LambertianBsdfs(scene, guided=lambda bsdf: bool(self.guides(mi.BSDFPtr(bsdf), True)[0]))
         self._rebuilt_at = 0      # a render that continues a trained guide counts its spp from 0: rebuild after a pass
+        self._updated_at = 0
+        self.learning, self._stopping = True, False     # and learns again
 
     def update(self, spp_done: int) -> UpdateResult:
         stats = self.counters.figures()
-        if self.trained and self.rebuild_growth > 0 and spp_done < self._next_rebuild():
+        if not self.learning or (self.trained and self.rebuild_growth > 0 and spp_done < self._next_rebuild()):
             stats.update(self._table_stats, rebuilt=False)     # the tables of the last rebuild, still in use
         else:
             table = self.record_table
@@ -94,13 +99,16 @@ class GridGuide(Guide):
             self._rebuilt_at = spp_done
             # With the entries the rebuild dropped or clamped (grid_record's sanitising).
             stats.update(self._table_stats, **table.sanitised, rebuilt=True)
-        self.trained = True
+            self.learning = not self._stopping
+        self.trained, self._updated_at = True, spp_done
         self.counters.reset()
         return UpdateResult(stats)
 
-    def update_due(self, spp_done: int) -> int:
+    def update_due(self, spp_done: int) -> int | None:
         """After every pass while untrained or without ``rebuild_growth``, else at the next rebuild
-        (:meth:`_next_rebuild`)."""
+        (:meth:`_next_rebuild`); never once training stopped."""
+        if not self.learning:
+            return None
         return self._next_rebuild() if self.trained and self.rebuild_growth > 0 else spp_done
 
     def _next_rebuild(self) -> int:
@@ -111,7 +119,17 @@ class GridGuide(Guide):
         return (self._rebuilt_at // step + 1) * step
 
     def records(self) -> bool:
-        return True
+        return self.learning
+
+    def learning_share(self) -> float:
+        return self.parameters.learning_share
+
+    def stop_training(self) -> None:
+        """Freeze the record now if the last update rebuilt it, else at its next rebuild: it then holds every target
+        recorded (with ``rebuild_growth``, the passes since the last rebuild recorded targets not yet folded in)."""
+        self._stopping = True
+        if self.trained and self._rebuilt_at == self._updated_at:
+            self.learning = False
 
     def trace_key(self) -> tuple:
         return self.trained, self.records()
@@ -166,7 +184,7 @@ class GridGuide(Guide):
     @dr.syntax
     def _sample_guidable(self, sampler, si, bsdf, bsdf_ctx, active, lambertian=None):
         """The guide where the sampler guides the vertex (its pair has a memo, say), one BSDF sample elsewhere."""
-        vertex = self._vertex(si, bsdf, active)
+        vertex = self._vertex(si, bsdf, active, mark_visited=self.learning)   # for the next rebuild
         if vertex.guided:
             bs, weight, index = self._guided_sample(sampler, si, bsdf, bsdf_ctx, vertex, lambertian)
         else:
