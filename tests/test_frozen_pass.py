@@ -31,8 +31,9 @@ SCHEDULE = (2, 2, 2, 4, 2, 4, 8, 4)
 METHODS = [name for name in method_names() if resolve(name).mitsuba_integrator is None]
 #: The key of ``_compare``'s result with a BSDF alive outside the scene.
 OUTSIDE_BSDF = "with a BSDF outside the scene"
-#: The SD-tree stops training at this pass: its last iteration traces a kernel without recording.
-SDTREE_STOP = 5
+#: The guides whose training stops at this pass (the SD-tree's last iteration, a grid guide's ``learning_share``):
+#: their passes then trace a kernel without recording.
+TRAINING_STOPS = {"sdtree": 5, "ours-plus": 5}
 
 
 def _passes(scene, method: str, freeze: bool) -> tuple[list, list, int | None]:
@@ -50,7 +51,7 @@ def _passes(scene, method: str, freeze: bool) -> tuple[list, list, int | None]:
     driver.prepare(None)
     images, stats = [], []
     for index, spp in enumerate(SCHEDULE):
-        if method == "sdtree" and index == SDTREE_STOP:
+        if TRAINING_STOPS.get(method) == index:
             integrator.guide.stop_training()
         outcome = driver.run(seed=index, spp=spp)
         images.append(np.array(outcome.image))

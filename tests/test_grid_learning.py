@@ -239,7 +239,8 @@ def test_stopped_training_freezes_the_record_at_its_next_rebuild():
 
 def test_learning_share_stops_training_and_lets_the_passes_grow(cornell):
     """With ``learning_share`` ½ of a 128-spp budget, the guide learns from the 8-spp passes up to 64 spp (``ours``
-    rebuilds after every pass, so it stops there at once); the passes after that record nothing and grow."""
+    rebuilds after every pass, so it stops there at once); the passes after that record nothing, rebuild nothing
+    and grow."""
     from guiding.guides.methods import make_guide
     from guiding.render.integrator import GuidedPathIntegrator
     from guiding.render.progressive import Budget, render
@@ -250,9 +251,26 @@ def test_learning_share_stops_training_and_lets_the_passes_grow(cornell):
     assert result.training_stopped["reason"] == "the guide learns from 0.5 of the budget"
     passes = [p.spp for p in result.passes]
     assert passes[:8] == [8] * 8 and max(passes[8:]) > 8 and sum(passes) == 128
+    assert all(p.guide["rebuilt"] for p in result.passes[:8]) and not any(p.guide["rebuilt"] for p in result.passes[8:])
     assert not guide.records()
     with pytest.raises(ValueError, match="learning_share"):
         make_guide("ours", learning_share=0)
+
+
+def test_learning_share_crossed_between_rebuilds_stops_at_the_next(cornell):
+    """``ours-plus`` rebuilds at 64, 80, 96, … spp (``rebuild_growth`` ¼): with 8-spp passes and a share of 0.42 of
+    200 spp (84), the share is crossed after the pass at 88 spp, between rebuilds; the guide learns on to the
+    rebuild at 96, which folds in the passes since 80, and stops there."""
+    from guiding.guides.methods import make_guide
+    from guiding.render.integrator import GuidedPathIntegrator
+    from guiding.render.progressive import Budget, render
+
+    guide = make_guide("ours-plus", learning_share=0.42)
+    budget = Budget(spp=200, growing_passes=False)
+    result = render(cornell, GuidedPathIntegrator(guide=guide), budget, seed=0, progress=False)
+    rebuilt = [p.spp_total for p in result.passes if p.guide["rebuilt"]]
+    assert rebuilt[-3:] == [64, 80, 96]
+    assert result.training_stopped["spp"] == 96 and not guide.records()
 
 
 def test_ours_plus_rebuilds_less_often_than_the_paper():

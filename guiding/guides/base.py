@@ -46,7 +46,8 @@ class Guide:
       ``new_paths(size, max_depth)`` builds the per-path state carried through the loop;
       ``guides(bsdf, active)`` the lanes whose BSDF it may guide (the others are BSDF-sampled);
       ``locate(si, bsdf, active)`` finds the vertex in the guide's structure once, for ``sample`` and ``record``;
-      ``sample(...)`` draws the next direction;
+      ``sample(...)`` draws the next direction; with next-event estimation ``sample_and_eval(...)`` draws it and
+      evaluates the BSDF towards the emitter sample (one BSDF call where the guide samples the BSDF);
       ``record(...)`` hands the guide what the path saw at a vertex (learning rules live here);
       ``finish_paths(state)`` runs once after the loop (e.g. the backward walk of Monte Carlo learning).
     """
@@ -91,7 +92,7 @@ class Guide:
     # A guide whose learning runs in iterations (the SD-tree) ends one by setting ``UpdateResult.iteration_done``;
     # the renderer then asks ``iteration_spp`` whether the next fits a seconds budget and
     # calls ``stop_training`` when it does not. Guides without iterations keep these defaults and are never asked
-    # about iterations; any guide may learn from a share of the budget only (``learning_share``).
+    # about iterations; a guide whose ``learning_share`` is below 1 (the grid's parameter) is stopped after it.
     def set_budget(self, spp: int | None) -> None:
         """The render's spp budget (None under a seconds budget), told once before the first pass."""
 
@@ -106,7 +107,8 @@ class Guide:
         return 1.0
 
     def stop_training(self) -> None:
-        """Freeze the distributions: the remaining passes record nothing and run to the end of the budget."""
+        """Freeze the distributions, at once or at the guide's next update (the grid's next rebuild): the passes after
+        that record nothing and run to the end of the budget."""
 
     # -------------------------------------------------------------- device side
     def new_paths(self, size: int, max_depth: int):
@@ -131,7 +133,8 @@ class Guide:
                         vertex=None) -> tuple[mi.Spectrum, mi.Float, mi.BSDFSample3f, mi.Spectrum]:
         """The BSDF's value (``f·cos``) and density at local direction ``wo`` for the lanes ``wo_active`` (next-event
         estimation's emitter direction), then :meth:`sample` for the lanes ``active``: what ``bsdf.eval_pdf_sample``
-        returns. A guide that samples other directions than the BSDF's evaluates, then samples: two BSDF calls."""
+        returns (at lanes outside ``wo_active`` the value and density are not asked for, whatever they are). A guide
+        that samples other directions than the BSDF's evaluates, then samples: two BSDF calls."""
         value, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, wo_active)
         bs, weight = self.sample(scene, sampler, si, bsdf, bsdf_ctx, active, vertex)
         return value, bsdf_pdf, bs, weight

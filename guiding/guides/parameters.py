@@ -97,9 +97,9 @@ class GridParameters:
         :mod:`guiding.render.pass_schedule`); the targets of the passes in between are kept and folded in at the next
         rebuild. Default 0: after every pass (the paper's).
       learning_share: the share of the render's budget (its spp, or its counted seconds) the guide learns from; the
-        renderer then stops its training (:meth:`~guiding.guides.base.Guide.stop_training`), and the guide as it is
-        renders the rest without recording and without rebuilds, in passes that grow (default 1: it learns to the
-        end, the paper's).
+        renderer then stops its training (:meth:`~guiding.guides.base.Guide.stop_training`): from its next rebuild
+        (at once if the last pass rebuilt it) the guide renders the rest without recording and without rebuilds, in
+        passes that grow (default 1: it learns to the end, the paper's).
       statistics: count, per pass, guided vertices, invalid samples, rejection proposals and acceptances (default
         False; :mod:`~guiding.guides.grid.counters`). The counters are atomics on 1-element arrays, several per
         bounce, a good part of its cost (the benchmark's ``[+statistics]`` stage); they are traced only when on, and

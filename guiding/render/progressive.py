@@ -39,6 +39,10 @@ that iteration's image, which becomes the final iteration: no sample is thrown a
 likewise extends its current iteration to the end of a time budget). When training stopped (spp and counted
 seconds) is in :attr:`RenderResult.training_stopped`, also when the guide's own spp schedule ended it.
 
+**A share of the budget.** A guide whose ``learning_share()`` is below 1 (the grid's ``learning_share``) is told to
+``stop_training()`` once that share of the budget (spp, or counted seconds) is spent; it stops recording at once or
+at its next update, and renders the rest as it is.
+
 **Snapshots.** ``snapshot`` is called with the image the render would return if it stopped now, after every pass
 that completes ``pass_spp · 2^k`` spp and after the last pass (:class:`~guiding.render.progress.SnapshotWriter` writes them to EXR files).
 
@@ -325,8 +329,8 @@ class _ProgressiveRender:
         return self.fallback is not None and self.fallback.renders_path
 
     def after_pass(self, stats: PassStats) -> None:
-        """Schedule and bookkeeping (not timed): an iteration that ended is closed, or training stops there; the
-        path fallback's check."""
+        """Schedule and bookkeeping (not timed): an iteration that ended is closed, or training stops there; training
+        stops once the guide's learning share of the budget is spent; the path fallback's check."""
         guide = self.guide
         if self.fallback is not None and self.fallback.watches:
             self._check_fallback()

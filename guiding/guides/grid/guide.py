@@ -78,7 +78,7 @@ class GridGuide(Guide):
         self.counters = PassCounters(p.statistics)
         self.rule, self.sampler = self.strategy.build(self.record_table, p, self.counters)
         self.trained = False
-        self.learning = True           # False from the first rebuild after the renderer stopped its training
+        self.learning = True           # False once training stopped (see stop_training)
         self._stopping = False         # the renderer stopped its training (learning_share)
 
     # ================================================================ host side
@@ -132,7 +132,7 @@ class GridGuide(Guide):
             self.learning = False
 
     def trace_key(self) -> tuple:
-        return self.trained, self.records()
+        return self.trained, self.records(), self.learning
 
     def stats(self) -> dict:
         table, p = self.record_table, self.parameters
