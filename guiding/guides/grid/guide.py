@@ -132,6 +132,7 @@ class GridGuide(Guide):
             self.learning = False
 
     def trace_key(self) -> tuple:
+        # learning as well as records(): the benchmark's stage guides stop recording without stopping learning
         return self.trained, self.records(), self.learning
 
     def stats(self) -> dict:
