@@ -3,6 +3,7 @@
 
 import mitsuba as mi
 import numpy as np
+import pytest
 
 import guiding  # noqa: F401  (registers guided_path for the variant the tests set)
 from guiding.render.integrator import GuidedPathIntegrator
@@ -58,3 +59,26 @@ def test_xml_integrator_trains_under_mi_render():
     assert image.shape[:2] == (16, 16)
     assert integrator.guide.trained
     assert [p.spp for p in integrator.last_result.passes] == [4, 4, 4, 4]
+
+
+def test_the_plugin_takes_the_methods_parameters_as_properties():
+    """A property the integrator does not read is a parameter of the method's guide, typed as in XML (what `--set`
+    gives the command line); one the method does not take is refused, naming it."""
+    plugin = mi.load_string("""
+    <integrator type="guided_path" version="3.0.0">
+        <string name="method" value="ours-plus"/>
+        <boolean name="nee" value="true"/>
+        <boolean name="path_fallback" value="true"/>
+        <float name="learning_share" value="0.25"/>
+        <integer name="spatial_resolution" value="4"/>
+        <string name="rule" value="expected_sarsa"/>
+    </integrator>""")
+    assert plugin.nee and plugin.path_fallback
+    assert plugin.guide.parameters == make_guide("ours-plus", learning_share=0.25, spatial_resolution=4,
+                                                 rule="expected_sarsa").parameters
+    assert plugin.guide.learning_share() == 0.25
+    for stray, named in (({"learning_shares": 0.25}, "no parameter 'learning_shares'"),
+                         ({"spatial_resolution": 2.5}, "spatial_resolution=2.5 is not an integer"),
+                         ({"method": "brdf", "learning_share": 0.25}, "takes no parameters")):
+        with pytest.raises(RuntimeError, match=named):
+            mi.load_dict({"type": "guided_path", "method": "ours", **stray})

@@ -60,9 +60,11 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         compared with the guide's last two and the rest of the budget goes to the one predicted the lower error
         (:mod:`guiding.render.path_fallback`; not for guides with iterations, the SD-tree). ``mi.render`` then
         returns an unbiased mix.
-      ``statistics`` (bool, false): grid methods only: the guide counts guided vertices, proposals and acceptances
-        per pass (``guided_samples``, ``acceptance_rate``, … in the pass statistics; off by default, they cost
-        atomics on every bounce).
+      Any other property is a parameter of the method's guide, as ``--set`` gives it on the command line: a field of
+        its parameters (:mod:`guiding.guides.parameters`) with a value of the field's type, for example
+        ``learning_share`` (float), ``spatial_resolution`` (int), or ``statistics`` (bool, grid methods: count
+        guided vertices, proposals and acceptances per pass; they cost atomics on every bounce). A property the
+        method does not take is refused (one line naming it).
 
     Attributes read by the progressive renderer and the benchmark after each pass: ``path_count``,
     ``hit_count`` (paths with a non-zero contribution) and ``ray_count`` (rays traced), reset by
@@ -90,8 +92,9 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         if self.pass_spp < 1:
             raise ValueError(f"pass_spp must be >= 1, got {self.pass_spp}")
         if guide is None:
-            statistics = props.get("statistics", False)
-            guide = make_guide(props.get("method", "brdf"), **({"statistics": True} if statistics else {}))
+            method = props.get("method", "brdf")
+            # The properties left are the method's parameters, as `--set` gives them (BadSetting names a stray one).
+            guide = make_guide(method, **{name: props[name] for name in props.unqueried()})
         self.guide = guide
         self.path_guide = guide      # what the path loop asks (see prepare)
         self.freeze = props.get("freeze", True)
