@@ -11,6 +11,8 @@ from guiding.guides.grid.guide import GridGuide
 from guiding.guides.grid.lambertian import BOTH_SIDES, FRONT_SIDE, NOT_LAMBERTIAN, LambertianBsdfs, lambertian_sides
 from guiding.guides.methods import make_guide
 from guiding.experiments.testing import train
+from guiding.render.integrator import GuidedPathIntegrator
+from guiding.render.progressive import Budget, render
 
 TEXTURE = {"type": "checkerboard", "color0": {"type": "rgb", "value": [0.8, 0.1, 0.2]},
            "color1": {"type": "rgb", "value": [0.1, 0.6, 0.3]}}
@@ -155,3 +157,39 @@ def _with_calls(prepare, guide, scene):
     """``GridGuide.prepare`` with every BSDF left to Mitsuba's calls."""
     prepare(guide, scene)
     guide._bsdfs = LambertianBsdfs()
+
+
+def test_emitter_evaluated_inline_only_where_every_smooth_bsdf_is():
+    """Next-event estimation evaluates the BSDF at every vertex with a smooth lobe: inline only where each of those
+    is a Lambertian BSDF computed inline (a glass sphere, all delta lobes, does not count; a rough plastic the guide
+    does not guide does)."""
+    diffuse = {"type": "twosided", "material": {"type": "diffuse"}}
+    lambertian = lambda b: lambertian_sides(b) != NOT_LAMBERTIAN     # noqa: E731
+    with_glass = mi.load_dict({"type": "scene", "floor": {"type": "rectangle", "bsdf": diffuse},
+                               "ball": {"type": "sphere", "bsdf": {"type": "dielectric"}}})
+    with_plastic = mi.load_dict({"type": "scene", "floor": {"type": "rectangle", "bsdf": diffuse},
+                                 "ball": {"type": "sphere", "bsdf": {"type": "roughplastic"}}})
+    assert LambertianBsdfs(with_glass, guided=lambertian).inline_emitter_eval
+    assert LambertianBsdfs(with_plastic, guided=lambertian).inline
+    assert not LambertianBsdfs(with_plastic, guided=lambertian).inline_emitter_eval
+    assert not LambertianBsdfs(with_glass, guided=lambda b: False).inline_emitter_eval
+
+
+@pytest.mark.parametrize("method", ["ours", "ours-plus"])
+def test_nee_with_the_emitter_evaluated_inline_renders_mitsubas_calls_image(cornell, method):
+    """With next-event estimation on the shipped Cornell box (every smooth BSDF Lambertian), the BSDF's value towards
+    the emitter computed inline from the albedo the guided sample reads gives, with the same seed, the image of
+    Mitsuba's calls everywhere, to float32 rounding."""
+    images = {}
+    for inline in (True, False):
+        with pytest.MonkeyPatch.context() as patch:
+            if not inline:
+                prepare = GridGuide.prepare
+                patch.setattr(GridGuide, "prepare", lambda self, scene: _with_calls(prepare, self, scene))
+            props = mi.Properties()
+            props["nee"] = True
+            integrator = GuidedPathIntegrator(props, guide=make_guide(method))
+            images[inline] = render(cornell, integrator, Budget(spp=32), seed=5, progress=False).image
+        assert integrator.guide._bsdfs.inline_emitter_eval == inline
+    np.testing.assert_allclose(images[True], images[False], rtol=1e-5, atol=1e-6)
+    assert images[True].mean() > 0

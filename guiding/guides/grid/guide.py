@@ -154,6 +154,18 @@ class GridGuide(Guide):
             lambertian = self._bsdfs.vertex(bsdf, si, guidable_lanes)
         return GridVertex(guidable_lanes, lambertian=lambertian)
 
+    def sample_and_eval(self, scene, sampler, si, bsdf, bsdf_ctx, active, wo, wo_active, vertex=None):
+        """Where every BSDF next-event estimation evaluates is Lambertian and computed inline, its value towards the
+        emitter comes from the albedo the guided sample reads too (one BSDF call per vertex, not two); elsewhere the
+        BSDF is evaluated, then sampled."""
+        if vertex is None or not (self.trained and self._bsdfs.inline_emitter_eval):
+            return super().sample_and_eval(scene, sampler, si, bsdf, bsdf_ctx, active, wo, wo_active, vertex)
+        if vertex.lambertian is None:
+            vertex.lambertian = self._bsdfs.vertex(bsdf, si, vertex.guidable)
+        value, bsdf_pdf = self._bsdfs.eval_pdf(vertex.lambertian, wo, wo_active)
+        bs, weight = self.sample(scene, sampler, si, bsdf, bsdf_ctx, active, vertex)
+        return value, bsdf_pdf, bs, weight
+
     def sample(self, scene, sampler, si, bsdf, bsdf_ctx, active, vertex=None):
         if not self.trained:
             if self.record_table.needs_pairs:

@@ -90,6 +90,10 @@ class LambertianBsdfs:
         instanced = any(shape.class_name() == "Instance" for shape in shapes)
         #: Whether the asked BSDFs are computed inline (there is one, every one is Lambertian, and no instance).
         self.inline = bool(asked) and NOT_LAMBERTIAN not in asked and not instanced
+        smooth = [bsdf for bsdf in bsdfs.values() if mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)]
+        #: Whether every BSDF next-event estimation evaluates (those with a smooth lobe) is computed inline.
+        self.inline_emitter_eval = self.inline and all(lambertian_sides(bsdf) != NOT_LAMBERTIAN and guided(bsdf)
+                                                       for bsdf in smooth)
         self._sides = mi.UInt32(table)
 
     def sides(self, bsdf: mi.BSDFPtr, active: mi.Bool) -> mi.UInt32:
@@ -112,6 +116,17 @@ class LambertianBsdfs:
         return LambertianVertex(lit=lit, flip=dr.select(mirrored, -1.0, 1.0),
                                 albedo=bsdf.eval_diffuse_reflectance(si, active))
 
+    @staticmethod
+    def eval_pdf(vertex: LambertianVertex, wo: mi.Vector3f, active: mi.Bool) -> tuple[mi.Spectrum, mi.Float]:
+        """What ``bsdf.eval_pdf`` returns at local direction ``wo``: ``ρ·cos/π`` and ``cos/π`` on the side the BSDF
+        reflects on, from ``vertex`` (read at lanes including ``active``)."""
+        cos_o = vertex.flip * mi.Frame3f.cos_theta(wo)
+        facing = active & vertex.lit & (cos_o > 0)
+        # Mitsuba's order of operations, so that the values are its own to the bit.
+        value = dr.select(facing, vertex.albedo * dr.inv_pi * cos_o, 0)
+        pdf = dr.select(facing, dr.inv_pi * cos_o, 0)
+        return value, pdf
+
     def eval_pdf_sample(self, bsdf: mi.BSDFPtr, bsdf_ctx: mi.BSDFContext, si: mi.SurfaceInteraction3f,
                         wo: mi.Vector3f, sample1: mi.Float, sample2: mi.Point2f, active: mi.Bool,
                         vertex: LambertianVertex | None = None):
@@ -122,12 +137,7 @@ class LambertianBsdfs:
         vertex = self.vertex(bsdf, si, active) if vertex is None else vertex
         if vertex is None:
             return bsdf.eval_pdf_sample(bsdf_ctx, si, wo, sample1, sample2, active)
-        cos_o = vertex.flip * mi.Frame3f.cos_theta(wo)
-        facing = active & vertex.lit & (cos_o > 0)
-        # Mitsuba's order of operations, so that the values are its own to the bit.
-        value = dr.select(facing, vertex.albedo * dr.inv_pi * cos_o, 0)
-        pdf = dr.select(facing, dr.inv_pi * cos_o, 0)
-
+        value, pdf = self.eval_pdf(vertex, wo, active)
         local = mi.warp.square_to_cosine_hemisphere(sample2)
         bs = dr.zeros(mi.BSDFSample3f)
         bs.wo = mi.Vector3f(local.x, local.y, vertex.flip * local.z)

@@ -31,8 +31,9 @@ class GridVertex:
     """What the path loop hands from :meth:`GridGuide.locate` to ``sample`` and ``record`` at a vertex: the lanes
     the guide may guide (the BSDF flags), and the record index of the direction ``sample`` took (left None by an
     untrained guide and by refined bins, whose record index ``record`` computes: the sampler's bin of a refined
-    entry's unrefined neighbour does not say the sub-bin), and, for Expected SARSA's record, the albedo of
-    Lambertian BSDFs read at the ``guidable`` lanes (sampling computes their BSDF from it; None: not read here)."""
+    entry's unrefined neighbour does not say the sub-bin), and, for Expected SARSA's record and next-event
+    estimation, the albedo of Lambertian BSDFs read at the ``guidable`` lanes (sampling computes their BSDF from it;
+    None: not read yet)."""
 
     guidable: mi.Bool
     index: mi.UInt32 = None
