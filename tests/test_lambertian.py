@@ -7,6 +7,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from guiding.guides.base import Guide
 from guiding.guides.grid.guide import GridGuide
 from guiding.guides.grid.lambertian import BOTH_SIDES, FRONT_SIDE, NOT_LAMBERTIAN, LambertianBsdfs, lambertian_sides
 from guiding.guides.methods import make_guide
@@ -159,37 +160,54 @@ def _with_calls(prepare, guide, scene):
     guide._bsdfs = LambertianBsdfs()
 
 
+def _lambertian(bsdf) -> bool:
+    return lambertian_sides(bsdf) != NOT_LAMBERTIAN
+
+
 def test_emitter_evaluated_inline_only_where_every_smooth_bsdf_is():
     """Next-event estimation evaluates the BSDF at every vertex with a smooth lobe: inline only where each of those
     is a Lambertian BSDF computed inline (a glass sphere, all delta lobes, does not count; a rough plastic the guide
-    does not guide does)."""
+    does not guide does, and so does a Lambertian BSDF the guide does not guide)."""
     diffuse = {"type": "twosided", "material": {"type": "diffuse"}}
-    lambertian = lambda b: lambertian_sides(b) != NOT_LAMBERTIAN     # noqa: E731
     with_glass = mi.load_dict({"type": "scene", "floor": {"type": "rectangle", "bsdf": diffuse},
                                "ball": {"type": "sphere", "bsdf": {"type": "dielectric"}}})
     with_plastic = mi.load_dict({"type": "scene", "floor": {"type": "rectangle", "bsdf": diffuse},
                                  "ball": {"type": "sphere", "bsdf": {"type": "roughplastic"}}})
-    assert LambertianBsdfs(with_glass, guided=lambertian).inline_emitter_eval
-    assert LambertianBsdfs(with_plastic, guided=lambertian).inline
-    assert not LambertianBsdfs(with_plastic, guided=lambertian).inline_emitter_eval
+    one_sided = mi.load_dict({"type": "scene", "floor": {"type": "rectangle", "bsdf": diffuse},
+                              "ball": {"type": "sphere", "bsdf": {"type": "diffuse"}}})
+    assert LambertianBsdfs(with_glass, guided=_lambertian).inline_emitter_eval
+    assert LambertianBsdfs(with_plastic, guided=_lambertian).inline
+    assert not LambertianBsdfs(with_plastic, guided=_lambertian).inline_emitter_eval
+    two_sided_only = LambertianBsdfs(one_sided, guided=lambda b: lambertian_sides(b) == BOTH_SIDES)
+    assert two_sided_only.inline and not two_sided_only.inline_emitter_eval
     assert not LambertianBsdfs(with_glass, guided=lambda b: False).inline_emitter_eval
 
 
-@pytest.mark.parametrize("method", ["ours", "ours-plus"])
+@pytest.mark.parametrize("method", ["ours", "ours-expected", "ours-plus"])
 def test_nee_with_the_emitter_evaluated_inline_renders_mitsubas_calls_image(cornell, method):
     """With next-event estimation on the shipped Cornell box (every smooth BSDF Lambertian), the BSDF's value towards
-    the emitter computed inline from the albedo the guided sample reads gives, with the same seed, the image of
-    Mitsuba's calls everywhere, to float32 rounding."""
+    the emitter computed inline from the albedo the guided sample reads (Expected SARSA's read in ``locate``, the
+    others' read for it) gives, with the same seed, the image of Mitsuba's calls everywhere, to float32 rounding;
+    and a trained guide then never evaluates the BSDF through Mitsuba's call first (the base class's way)."""
     images = {}
     for inline in (True, False):
+        trained_calls = []
         with pytest.MonkeyPatch.context() as patch:
             if not inline:
                 prepare = GridGuide.prepare
                 patch.setattr(GridGuide, "prepare", lambda self, scene: _with_calls(prepare, self, scene))
+            evaluate_then_sample = Guide.sample_and_eval
+
+            def spy(guide, *args, **kwargs):
+                trained_calls.append(guide.trained)
+                return evaluate_then_sample(guide, *args, **kwargs)
+
+            patch.setattr(Guide, "sample_and_eval", spy)
             props = mi.Properties()
             props["nee"] = True
             integrator = GuidedPathIntegrator(props, guide=make_guide(method))
             images[inline] = render(cornell, integrator, Budget(spp=32), seed=5, progress=False).image
         assert integrator.guide._bsdfs.inline_emitter_eval == inline
+        assert any(trained_calls) != inline
     np.testing.assert_allclose(images[True], images[False], rtol=1e-5, atol=1e-6)
     assert images[True].mean() > 0

@@ -72,13 +72,15 @@ def test_the_plugin_takes_the_methods_parameters_as_properties():
         <float name="learning_share" value="0.25"/>
         <integer name="spatial_resolution" value="4"/>
         <string name="rule" value="expected_sarsa"/>
+        <boolean name="freeze" value="false"/>
     </integrator>""")
-    assert plugin.nee and plugin.path_fallback
+    assert plugin.nee and plugin.path_fallback and not plugin.freeze
     assert plugin.guide.parameters == make_guide("ours-plus", learning_share=0.25, spatial_resolution=4,
                                                  rule="expected_sarsa").parameters
     assert plugin.guide.learning_share() == 0.25
     for stray, named in (({"learning_shares": 0.25}, "no parameter 'learning_shares'"),
                          ({"spatial_resolution": 2.5}, "spatial_resolution=2.5 is not an integer"),
-                         ({"method": "brdf", "learning_share": 0.25}, "takes no parameters")):
+                         ({"method": "brdf", "learning_share": 0.25}, "takes no parameters"),
+                         ({"max_dpeth": 4}, "no parameter 'max_dpeth'.*own properties: method, max_depth")):
         with pytest.raises(RuntimeError, match=named):
             mi.load_dict({"type": "guided_path", "method": "ours", **stray})

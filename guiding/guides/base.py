@@ -47,7 +47,8 @@ class Guide:
       ``guides(bsdf, active)`` the lanes whose BSDF it may guide (the others are BSDF-sampled);
       ``locate(si, bsdf, active)`` finds the vertex in the guide's structure once, for ``sample`` and ``record``;
       ``sample(...)`` draws the next direction; with next-event estimation ``sample_and_eval(...)`` draws it and
-      evaluates the BSDF towards the emitter sample (one BSDF call where the guide samples the BSDF);
+      evaluates the BSDF towards the emitter sample (one BSDF call where it can: BSDF sampling, and the grid
+      guides in scenes of Lambertian BSDFs);
       ``record(...)`` hands the guide what the path saw at a vertex (learning rules live here);
       ``finish_paths(state)`` runs once after the loop (e.g. the backward walk of Monte Carlo learning).
     """

@@ -24,7 +24,7 @@ import mitsuba as mi
 
 from guiding.errors import GuidingError
 from guiding.guides import BSDFGuide, Guide, NoPathState
-from guiding.guides.methods import make_guide
+from guiding.guides.methods import BadSetting, make_guide
 from guiding.render import defaults
 from guiding.render.emitter_sampling import (PreviousVertex, hit_weight, sample_emitter_direction,
                                              unsampleable_emitters, weigh_emitter_sample)
@@ -64,7 +64,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         its parameters (:mod:`guiding.guides.parameters`) with a value of the field's type, for example
         ``learning_share`` (float), ``spatial_resolution`` (int), or ``statistics`` (bool, grid methods: count
         guided vertices, proposals and acceptances per pass; they cost atomics on every bounce). A property the
-        method does not take is refused (one line naming it).
+        method does not take is refused (BadSetting, naming it and the integrator's own properties).
 
     Attributes read by the progressive renderer and the benchmark after each pass: ``path_count``,
     ``hit_count`` (paths with a non-zero contribution) and ``ray_count`` (rays traced), reset by
@@ -91,13 +91,11 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
             raise ValueError(f"max_depth must be >= 1, got {self.max_depth}")
         if self.pass_spp < 1:
             raise ValueError(f"pass_spp must be >= 1, got {self.pass_spp}")
+        self.freeze = props.get("freeze", True)
         if guide is None:
-            method = props.get("method", "brdf")
-            # The properties left are the method's parameters, as `--set` gives them (BadSetting names a stray one).
-            guide = make_guide(method, **{name: props[name] for name in props.unqueried()})
+            guide = _guide_of(props)
         self.guide = guide
         self.path_guide = guide      # what the path loop asks (see prepare)
-        self.freeze = props.get("freeze", True)
         self.frozen_passes = None     # the FrozenPasses of the scene last prepared (None: traced passes)
         self.path_integrator = None   # Mitsuba's path, for the scene last prepared where nee and the guide learn
         self.last_result = None
@@ -299,6 +297,21 @@ class _PassRenderer(mi.SamplingIntegrator):
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         return self.integrator.sample(scene, sampler, ray, medium, active)
+
+
+#: The properties ``GuidedPathIntegrator`` reads itself; the others are its method's parameters.
+PROPERTIES = ("method", "max_depth", "rr_depth", "rr_min", "pass_spp", "growing_passes", "seconds", "freeze", "nee",
+              "learn_nee_light", "path_fallback")
+
+
+def _guide_of(props: mi.Properties) -> Guide:
+    """A fresh guide of the method ``props`` names, with the properties the integrator has not read (Mitsuba marks
+    them unqueried) as its parameters, typed as in XML."""
+    method = props.get("method", "brdf")
+    try:
+        return make_guide(method, **{name: props[name] for name in props.unqueried()})
+    except BadSetting as error:
+        raise BadSetting(f"guided_path: {error}; the integrator's own properties: {', '.join(PROPERTIES)}") from None
 
 
 #: The path loop's guide in a scene with nothing to guide.

@@ -161,6 +161,7 @@ class GridGuide(Guide):
         if vertex is None or not (self.trained and self._bsdfs.inline_emitter_eval):
             return super().sample_and_eval(scene, sampler, si, bsdf, bsdf_ctx, active, wo, wo_active, vertex)
         if vertex.lambertian is None:
+            # Emitter samples are drawn only at smooth BSDFs, and inline_emitter_eval means each is a guided one.
             vertex.lambertian = self._bsdfs.vertex(bsdf, si, vertex.guidable)
         value, bsdf_pdf = self._bsdfs.eval_pdf(vertex.lambertian, wo, wo_active)
         bs, weight = self.sample(scene, sampler, si, bsdf, bsdf_ctx, active, vertex)
