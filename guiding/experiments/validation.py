@@ -50,6 +50,26 @@ def relative_standard_error(a: np.ndarray, b: np.ndarray) -> float:
     return float((_difference_standard_error(a, b) / np.abs(b.mean(axis=0))).mean())
 
 
+def path_render_means(scene: mi.Scene, renders: int, spp: int) -> np.ndarray:
+    """Per-channel image means of ``renders`` whole renders of Mitsuba's ``path`` at ``spp`` (seeds 100, 101, …),
+    shape (renders, 3): the reference of estimators whose renders are compared whole (their passes are not
+    independent, as those of a render that decides between strategies)."""
+    from guiding.render.progressive import Budget, render
+
+    path = mi.load_dict({"type": "path", "max_depth": 16})
+    return np.array([render(scene, path, Budget(spp=spp), seed=100 + seed, progress=False).image.mean(axis=(0, 1))
+                     for seed in range(renders)])
+
+
+def assert_means_agree(means: np.ndarray, reference: np.ndarray, note: str = "") -> None:
+    """AssertionError unless the per-channel means of ``means`` and ``reference`` (one row per render or pass) agree
+    within :data:`Z_LIMIT` standard errors, or if the comparison could not fail: its standard error must be under
+    2 % of the reference's mean."""
+    z = z_scores(means, reference)
+    assert (z < Z_LIMIT).all(), f"z-scores {z} {note}, means {means.mean(0)} vs {reference.mean(0)}"
+    assert (means.std(axis=0, ddof=1) / len(means) ** 0.5 < 0.02 * reference.mean(axis=0)).all()
+
+
 #: The unbiasedness checks' scenes and budgets, (scale, passes, spp per pass), set from the measured variance: the
 #: relative standard error of the difference to ``path`` is about 3 % on door-ajar (a light seen only through a gap)
 #: and 0.3 % on cornell-tilted (whose normals all lie away from their normal bins' centres). door-ajar takes many
