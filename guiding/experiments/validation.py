@@ -11,6 +11,7 @@ import mitsuba as mi
 
 from guiding.guides import RULES, SAMPLERS
 from guiding.render.driver import PassDriver, pass_seed
+from guiding.render.progressive import Budget, render
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -54,8 +55,6 @@ def path_render_means(scene: mi.Scene, renders: int, spp: int) -> np.ndarray:
     """Per-channel image means of ``renders`` whole renders of Mitsuba's ``path`` at ``spp`` (seeds 100, 101, …),
     shape (renders, 3): the reference of estimators whose renders are compared whole (their passes are not
     independent, as those of a render that decides between strategies)."""
-    from guiding.render.progressive import Budget, render
-
     path = mi.load_dict({"type": "path", "max_depth": 16})
     return np.array([render(scene, path, Budget(spp=spp), seed=100 + seed, progress=False).image.mean(axis=(0, 1))
                      for seed in range(renders)])
@@ -139,7 +138,6 @@ def _equal_spp_rows(scene_name: str, scale: float, spp: int, reference_spp: int,
     from guiding.render.integrator import GuidedPathIntegrator
     from guiding.guides.methods import make_guide
     from guiding.metrics import evaluate
-    from guiding.render.progressive import Budget, render
     from guiding.scenes import load_scene
 
     scene = load_scene(scene_name, scale)

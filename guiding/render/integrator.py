@@ -64,7 +64,7 @@ class GuidedPathIntegrator(mi.SamplingIntegrator):
         its parameters (:mod:`guiding.guides.parameters`) with a value of the field's type, for example
         ``learning_share`` (float), ``spatial_resolution`` (int), or ``statistics`` (bool, grid methods: count
         guided vertices, proposals and acceptances per pass; they cost atomics on every bounce). A property the
-        method does not take is refused (BadSetting, naming it and the integrator's own properties).
+        method does not take is refused (BadSetting, naming it).
 
     Attributes read by the progressive renderer and the benchmark after each pass: ``path_count``,
     ``hit_count`` (paths with a non-zero contribution) and ``ray_count`` (rays traced), reset by
@@ -299,11 +299,6 @@ class _PassRenderer(mi.SamplingIntegrator):
         return self.integrator.sample(scene, sampler, ray, medium, active)
 
 
-#: The properties ``GuidedPathIntegrator`` reads itself; the others are its method's parameters.
-PROPERTIES = ("method", "max_depth", "rr_depth", "rr_min", "pass_spp", "growing_passes", "seconds", "freeze", "nee",
-              "learn_nee_light", "path_fallback")
-
-
 def _guide_of(props: mi.Properties) -> Guide:
     """A fresh guide of the method ``props`` names, with the properties the integrator has not read (Mitsuba marks
     them unqueried) as its parameters, typed as in XML."""
@@ -311,7 +306,8 @@ def _guide_of(props: mi.Properties) -> Guide:
     try:
         return make_guide(method, **{name: props[name] for name in props.unqueried()})
     except BadSetting as error:
-        raise BadSetting(f"guided_path: {error}; the integrator's own properties: {', '.join(PROPERTIES)}") from None
+        # Nor is it one of the integrator's own, which it read before (their list: the class docstring, the README).
+        raise BadSetting(f"guided_path: {error}; nor is it a property of guided_path itself") from None
 
 
 #: The path loop's guide in a scene with nothing to guide.
